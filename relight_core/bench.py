@@ -1,0 +1,112 @@
+"""`python -m relight_core bench`: DiT throughput against this machine's matmul peak.
+
+Prints, for the `tiny` and `small` presets at 256×256 (one latent frame) and 256×256×17 frames,
+the DiT forward time and the achieved GFLOP/s (FLOPs counted by torch's FlopCounterMode), next to
+the measured bf16 and fp32 matmul peak; the denoiser evaluations per relight of our sampler and
+of the released one; the 7B preset's parameter count; and peak resident memory.
+"""
+
+from __future__ import annotations
+
+import json
+import resource
+import time
+from pathlib import Path
+
+import torch
+from torch.utils.flop_counter import FlopCounterMode
+
+from relight_core.checkpoint import MODEL_PRESETS
+from relight_core.diffusion import SAMPLERS, get_sigmas_karras
+from relight_core.dit import CHANNELS, JointDiT, param_count
+
+RELEASED_STEPS = 35
+
+
+def _timeit(fn, repeats: int) -> float:
+    """Median seconds of `fn()` after one warm-up call."""
+    fn()
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - start)
+    return sorted(times)[len(times) // 2]
+
+
+def matmul_peak_gflops(dtype: torch.dtype, n: int = 2048, repeats: int = 5) -> float:
+    """Achieved GFLOP/s of an n×n matmul: the practical peak the DiT is measured against."""
+    a = torch.randn(n, n, dtype=dtype)
+    b = torch.randn(n, n, dtype=dtype)
+    seconds = _timeit(lambda: torch.mm(a, b), repeats)
+    return 2 * n ** 3 / seconds / 1e9
+
+
+def count_evaluations(steps: int, guidance: float) -> int:
+    """Denoiser calls of one relight with our res2ab sampler (a toy denoiser counts them)."""
+    calls = 0
+
+    def denoiser(x, sigma, **_):
+        nonlocal calls
+        calls += 1 if guidance == 0 else 2
+        return torch.zeros_like(x)
+
+    SAMPLERS["res2ab"](denoiser, torch.zeros(1), get_sigmas_karras(steps))
+    return calls
+
+
+def dit_forward(preset: str, frames: int, size: int = 256, repeats: int = 3) -> dict:
+    """Time one bf16-autocast forward of a preset's DiT on a [input | relit | albedo] clip."""
+    spec = MODEL_PRESETS[preset]
+    model = JointDiT(spec.dit).eval()
+    t = 1 + (frames - 1) // 8
+    h = w = size // 8
+    x = torch.randn(1, CHANNELS["padding_mask"].stop, 3 * t, h, w)
+    c_noise = torch.zeros(1)
+
+    def forward():
+        with torch.no_grad(), torch.autocast("cpu", dtype=torch.bfloat16):
+            model(x, c_noise)
+
+    with FlopCounterMode(display=False) as counter:
+        forward()
+    flops = counter.get_total_flops()
+    seconds = _timeit(forward, repeats)
+    tokens = 3 * t * (h // spec.dit.patch_spatial) * (w // spec.dit.patch_spatial)
+    return {"preset": preset, "frames": frames, "size": size, "tokens": tokens,
+            "params_M": round(sum(p.numel() for p in model.parameters()) / 1e6, 2),
+            "seconds": round(seconds, 4), "gflop": round(flops / 1e9, 2),
+            "gflops_per_s": round(flops / seconds / 1e9, 1)}
+
+
+def run_bench(quick: bool = False, out: Path | None = None) -> dict:
+    """Run every measurement, print a table and return the numbers."""
+    torch.manual_seed(0)
+    peak_bf16 = matmul_peak_gflops(torch.bfloat16)
+    peak_fp32 = matmul_peak_gflops(torch.float32)
+    print(f"matmul peak (2048², measured): bf16 {peak_bf16:.0f} GFLOP/s, fp32 {peak_fp32:.0f} GFLOP/s, "
+          f"{torch.get_num_threads()} threads")
+    rows = []
+    presets = ["tiny"] if quick else ["tiny", "small"]
+    for preset in presets:
+        for frames in (1, 17):
+            row = dit_forward(preset, frames, repeats=2 if quick else 3)
+            row["vs_bf16_peak"] = round(row["gflops_per_s"] / peak_bf16, 3)
+            rows.append(row)
+            print(f"DiT {preset:>5} {row['params_M']:7.2f}M  256×256×{frames:<2} {row['tokens']:5d} tokens  "
+                  f"{row['seconds'] * 1e3:8.1f} ms  {row['gflop']:8.2f} GFLOP  {row['gflops_per_s']:7.1f} GFLOP/s"
+                  f"  = {100 * row['vs_bf16_peak']:.0f}% of bf16 peak")
+    ours = count_evaluations(RELEASED_STEPS, guidance=0.0)
+    released = 2 * RELEASED_STEPS + 1  # the released sampler also runs the unconditional pass at guidance 0
+    print(f"denoiser evaluations per relight ({RELEASED_STEPS} steps, guidance 0): ours {ours}, "
+          f"released sampler {released}")
+    params_7b = param_count(MODEL_PRESETS["unirelight-7b"].dit)
+    print(f"unirelight-7b preset: {params_7b / 1e9:.3f} B parameters (meta device)")
+    peak_rss_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    print(f"peak resident memory: {peak_rss_mb:.0f} MB")
+    numbers = {"matmul_peak_gflops": {"bf16": round(peak_bf16, 1), "fp32": round(peak_fp32, 1)},
+               "dit": rows, "evaluations": {"ours": ours, "released": released},
+               "unirelight_7b_params": params_7b, "peak_rss_mb": round(peak_rss_mb)}
+    if out is not None:
+        Path(out).write_text(json.dumps(numbers, indent=2))
+    return numbers

@@ -1,0 +1,161 @@
+"""Model directories: `config.json` + `*.safetensors`, named presets, save/load round trips.
+
+A model directory holds everything the `Relighter` needs:
+
+    config.json            ModelSpec (DiT config, tokenizer spec, chunking and sampling defaults)
+    dit.safetensors        JointDiT state dict
+    tokenizer.safetensors  trainable tokenizer state dict (absent for the Cosmos JIT tokenizer,
+                           whose TorchScript files the tokenizer spec names instead)
+
+`load_model("tiny")` builds a preset with random weights (tests, benchmarks); `load_model(DIR)`
+loads a directory; `load_model("default")` loads the small model shipped in `models/default`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import torch
+from safetensors.torch import load_file, save_file
+
+from relight_core.dit import DIT_PRESETS, DiTConfig, JointDiT
+from relight_core.errors import InputError
+from relight_core.tokenizer import build_tokenizer
+
+REPO_ROOT = Path(__file__).resolve().parent.parent
+DEFAULT_MODEL_DIR = REPO_ROOT / "models" / "default"
+CONFIG_FILE = "config.json"
+DIT_FILE = "dit.safetensors"
+TOKENIZER_FILE = "tokenizer.safetensors"
+
+
+@dataclass(frozen=True)
+class ModelSpec:
+    """Everything about a model except its weights."""
+
+    name: str
+    dit: DiTConfig
+    tokenizer: dict                      # spec for tokenizer.build_tokenizer
+    chunk_frames: int = 57               # frames per chunk, 1 + k·temporal_factor
+    overlap_frames: int = 9              # frames shared by consecutive chunks, 1 + j·temporal_factor
+    size: int = 848                      # default working resolution (long side, pixels)
+    steps: int = 35                      # default sampling steps
+    sampler: str = "res2ab"              # default sampler
+    autocast_bf16: bool = True           # run the DiT and tokenizer under bf16 autocast
+    trained: bool = True                 # False for a preset with random weights
+    notes: dict = field(default_factory=dict)
+
+    def to_json(self) -> dict:
+        """A JSON-able dict; `from_json` inverts it."""
+        out = dataclasses.asdict(self)
+        out["dit"] = dataclasses.asdict(self.dit)
+        return out
+
+    @classmethod
+    def from_json(cls, data: dict) -> "ModelSpec":
+        """Parse a config.json dict, ignoring keys this version does not know."""
+        known = {f.name for f in dataclasses.fields(cls)}
+        kwargs = {k: v for k, v in data.items() if k in known}
+        dit_fields = {f.name for f in dataclasses.fields(DiTConfig)}
+        kwargs["dit"] = DiTConfig(**{k: _tuples(v) for k, v in data["dit"].items() if k in dit_fields})
+        return cls(**kwargs)
+
+
+def _tuples(value):
+    """JSON turns tuples into lists; frozen configs want tuples back."""
+    return tuple(value) if isinstance(value, list) else value
+
+
+MODEL_PRESETS: dict[str, ModelSpec] = {
+    "tiny": ModelSpec(
+        name="tiny", dit=DIT_PRESETS["tiny"], tokenizer={"type": "causal-ae", "preset": "tiny"},
+        chunk_frames=17, overlap_frames=9, size=64, steps=4, trained=False,
+    ),
+    "small": ModelSpec(
+        name="small", dit=DIT_PRESETS["small"], tokenizer={"type": "causal-ae", "preset": "small"},
+        chunk_frames=17, overlap_frames=9, size=256, steps=20, trained=False,
+    ),
+    "unirelight-7b": ModelSpec(
+        name="unirelight-7b", dit=DIT_PRESETS["unirelight-7b"],
+        tokenizer={"type": "cosmos-jit", "encoder": "encoder.jit", "decoder": "decoder.jit"},
+        chunk_frames=57, overlap_frames=9, size=848, steps=35, trained=False,
+    ),
+}
+
+
+def save_model(directory: str | Path, spec: ModelSpec, dit: JointDiT, tokenizer) -> Path:
+    """Write config.json and the safetensors weights of a model into `directory`."""
+    directory = Path(directory)
+    directory.mkdir(parents=True, exist_ok=True)
+    save_file({k: v.contiguous() for k, v in dit.state_dict().items()}, directory / DIT_FILE)
+    if isinstance(tokenizer, torch.nn.Module) and spec.tokenizer.get("type") != "cosmos-jit":
+        state = {k: v.contiguous() for k, v in tokenizer.state_dict().items()}
+        save_file(state, directory / TOKENIZER_FILE)
+    (directory / CONFIG_FILE).write_text(json.dumps(spec.to_json(), indent=2))
+    return directory
+
+
+def resolve_model(model: str | Path) -> tuple[ModelSpec, Path | None]:
+    """Turn "default", a preset name or a directory into (spec, weights directory or None)."""
+    if str(model) == "default":
+        if (DEFAULT_MODEL_DIR / CONFIG_FILE).is_file():
+            return _read_spec(DEFAULT_MODEL_DIR), DEFAULT_MODEL_DIR
+        return MODEL_PRESETS["tiny"], None
+    if str(model) in MODEL_PRESETS:
+        return MODEL_PRESETS[str(model)], None
+    directory = Path(model).expanduser()
+    if not directory.is_dir():
+        names = ", ".join(["default", *MODEL_PRESETS])
+        raise InputError(f"Model '{model}' is neither a model directory nor a preset ({names}); "
+                         "pass a folder holding config.json and *.safetensors.")
+    return _read_spec(directory), directory
+
+
+def _read_spec(directory: Path) -> ModelSpec:
+    path = directory / CONFIG_FILE
+    if not path.is_file():
+        raise InputError(f"The model folder {directory} has no {CONFIG_FILE}; "
+                         "point to a folder written by save_model or the convert command.")
+    try:
+        return ModelSpec.from_json(json.loads(path.read_text()))
+    except (ValueError, KeyError, TypeError) as exc:
+        raise InputError(f"{path} is not a valid model config ({exc}); re-export the model.") from exc
+
+
+def load_model(model: str | Path = "default", device: str | torch.device = "cpu"):
+    """Build (spec, dit, tokenizer) from a preset name or a model directory; eval mode."""
+    spec, directory = resolve_model(model)
+    dit = JointDiT(spec.dit)
+    tokenizer = build_tokenizer(spec.tokenizer, directory)
+    if directory is not None:
+        _load_state(dit, directory / DIT_FILE)
+        if spec.tokenizer.get("type") != "cosmos-jit":
+            _load_state(tokenizer, directory / TOKENIZER_FILE)
+    dit.to(device).eval().requires_grad_(False)
+    if isinstance(tokenizer, torch.nn.Module):
+        tokenizer.to(device).eval().requires_grad_(False)
+    return spec, dit, tokenizer
+
+
+def _load_state(module: torch.nn.Module, path: Path) -> None:
+    """Load a safetensors file into `module`, failing with one sentence on any mismatch."""
+    if not path.is_file():
+        raise InputError(f"The model folder is missing {path.name} (expected at {path}); "
+                         "copy the complete model folder.")
+    try:
+        state = load_file(str(path))
+    except Exception as exc:  # safetensors raises its own error types for corrupt headers
+        raise InputError(f"{path} is not a readable safetensors file ({exc}); re-download it.") from exc
+    expected = module.state_dict()
+    missing = sorted(set(expected) - set(state))
+    unexpected = sorted(set(state) - set(expected))
+    wrong = [k for k in expected if k in state and state[k].shape != expected[k].shape]
+    if missing or unexpected or wrong:
+        detail = (f"{len(missing)} missing (e.g. {missing[:2]}), {len(unexpected)} unexpected "
+                  f"(e.g. {unexpected[:2]}), {len(wrong)} with the wrong shape (e.g. "
+                  f"{[(k, tuple(state[k].shape), tuple(expected[k].shape)) for k in wrong[:2]]})")
+        raise InputError(f"The weights in {path} do not match the model in config.json: {detail}.")
+    module.load_state_dict(state)

@@ -1,0 +1,192 @@
+"""Command line: `python -m relight_core relight|augment|albedo|render|bench|...`.
+
+Every user error ends the same way: one sentence on stderr and exit code 2, with nothing written
+into the output folder (outputs are staged in a hidden folder and moved in at the very end).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import shutil
+import sys
+import tempfile
+from pathlib import Path
+
+from relight_core.errors import InputError
+
+EXIT_USER_ERROR = 2
+
+
+def _parse_seeds(text: str) -> list[int]:
+    """"0-7" → [0..7]; "1,5,9" → [1,5,9]; "3" → [3]."""
+    seeds: list[int] = []
+    try:
+        for part in text.split(","):
+            if "-" in part.strip()[1:]:
+                lo, hi = part.rsplit("-", 1)
+                seeds.extend(range(int(lo), int(hi) + 1))
+            else:
+                seeds.append(int(part))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"'{text}' is not a seed list; write e.g. 0-7 or 1,5,9.") from None
+    if not seeds or len(seeds) > 256:
+        raise argparse.ArgumentTypeError("Give between 1 and 256 seeds, e.g. 0-7.")
+    return seeds
+
+
+def _frame_range(text: str) -> tuple[int, int | None]:
+    """"START:END" (END exclusive, optional) → (start, end)."""
+    try:
+        start, _, end = text.partition(":")
+        return int(start or 0), (int(end) if end else None)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"'{text}' is not a frame range; write e.g. 0:57.") from None
+
+
+def _add_model_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--model", default="default",
+                   help="'default' (shipped small model), a preset (tiny, small, unirelight-7b) or a model folder")
+    p.add_argument("--steps", type=int, default=None, help="sampling steps (default: the model's)")
+    p.add_argument("--sampler", default=None, help="res2ab (default), euler or heun")
+    p.add_argument("--guidance", type=float, default=0.0, help="classifier-free guidance (0 = off, one pass)")
+    p.add_argument("--size", type=int, default=None, help="working resolution: long side in pixels")
+    p.add_argument("--frames", type=_frame_range, default=(0, None), metavar="START:END",
+                   help="frame range of a video (END exclusive)")
+    p.add_argument("--device", default=None, help="cpu or cuda (default: cuda when available)")
+    p.add_argument("--out", required=True, type=Path, help="output folder")
+
+
+def _add_probe_args(p: argparse.ArgumentParser, required: bool) -> None:
+    p.add_argument("--probe", required=required, type=Path, help="HDR environment map (.exr or .hdr)")
+    p.add_argument("--rotation", type=float, default=None, help="yaw of the probe in degrees")
+    p.add_argument("--rotate-light", action="store_true", help="sweep the probe's yaw through 360° over the clip")
+    p.add_argument("--intensity", type=float, default=1.0, help="multiplier on the probe's radiance")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="python -m relight_core",
+                                     description="UniRelight Studio: relight images and videos.")
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    p = sub.add_parser("relight", help="relight an image or video under an HDR probe")
+    p.add_argument("input", type=Path)
+    _add_probe_args(p, required=True)
+    p.add_argument("--seed", type=int, default=0)
+    _add_model_args(p)
+
+    p = sub.add_parser("augment", help="random illuminations, one result per seed (no probe)")
+    p.add_argument("input", type=Path)
+    p.add_argument("--seeds", type=_parse_seeds, default=_parse_seeds("0-7"))
+    _add_model_args(p)
+
+    p = sub.add_parser("albedo", help="estimate the albedo of an image or video (inverse rendering)")
+    p.add_argument("input", type=Path)
+    p.add_argument("--seed", type=int, default=0)
+    _add_model_args(p)
+
+    p = sub.add_parser("render", help="render a given albedo under an HDR probe (forward rendering)")
+    p.add_argument("input", type=Path, help="albedo image or video")
+    _add_probe_args(p, required=True)
+    p.add_argument("--seed", type=int, default=0)
+    _add_model_args(p)
+
+    p = sub.add_parser("bench", help="measure DiT throughput, sampler cost and memory on this machine")
+    p.add_argument("--quick", action="store_true", help="tiny preset only, fewer repeats")
+    p.add_argument("--out", type=Path, default=None, help="also write the numbers as JSON here")
+
+    try:
+        from relight_core.data.cli import add_data_commands
+    except ImportError:  # the data engine's optional renderer dependencies are missing
+        add_data_commands = None
+    if add_data_commands is not None:
+        add_data_commands(sub)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        if args.command == "bench":
+            from relight_core.bench import run_bench
+            run_bench(quick=args.quick, out=args.out)
+            return 0
+        if args.command in ("relight", "augment", "albedo", "render"):
+            return _run_media_command(args)
+        return args.func(args)
+    except InputError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return EXIT_USER_ERROR
+    except KeyboardInterrupt:
+        print("stopped.", file=sys.stderr)
+        return 130
+
+
+def _run_media_command(args) -> int:
+    from tqdm import tqdm
+
+    from relight_core import lighting, media
+    from relight_core.pipeline import ChunkDone, Finished, Progress, Relighter, RelightRequest
+
+    relighter = Relighter.load(args.model, device=args.device)
+    if not relighter.spec.trained:
+        print(f"note: model '{relighter.spec.name}' has random weights; results will be noise.",
+              file=sys.stderr)
+    start, end = args.frames
+    source = media.load_media(args.input, start=start, end=end)
+    size = args.size or relighter.spec.size
+    frames = media.resize_frames(source.frames, size, multiple=relighter.frame_multiple)
+    probe = None
+    if getattr(args, "probe", None) is not None:
+        probe = lighting.load_probe(args.probe, intensity=args.intensity)
+    base = dict(fps=source.fps, audio_path=source.audio_path, steps=args.steps, sampler=args.sampler,
+                guidance=args.guidance)
+    if getattr(args, "rotation", None) is not None:
+        base["rotation"] = args.rotation
+    if getattr(args, "rotate_light", False):
+        base["rotate_light"] = True
+
+    if args.command == "relight":
+        jobs = [("", RelightRequest(frames, mode="relight", probe=probe, seed=args.seed, **base))]
+    elif args.command == "render":
+        jobs = [("", RelightRequest(frames, mode="render", probe=probe, albedo=frames, seed=args.seed, **base))]
+    elif args.command == "albedo":
+        jobs = [("", RelightRequest(frames, mode="albedo", seed=args.seed, **base))]
+    else:
+        jobs = [(f"seed{seed:04d}_", RelightRequest(frames, mode="random", seed=seed, **base))
+                for seed in args.seeds]
+
+    args.out.mkdir(parents=True, exist_ok=True)
+    staging = Path(tempfile.mkdtemp(prefix=".partial-", dir=args.out))
+    try:
+        written = []
+        for prefix, request in jobs:
+            result = None
+            with tqdm(desc=f"{args.command} {prefix.rstrip('_')}".strip(), unit="step", file=sys.stderr,
+                      disable=None) as bar:
+                for event in relighter.run(request):
+                    if isinstance(event, Progress):
+                        bar.total = event.total_steps * event.num_chunks
+                        bar.update(1)
+                    elif isinstance(event, ChunkDone):
+                        bar.set_postfix(chunk=f"{event.chunk + 1}/{event.num_chunks}")
+                    elif isinstance(event, Finished):
+                        result = event.result
+            outputs = {"albedo": result.albedo} if args.command == "albedo" else {"relit": result.relit,
+                                                                                   "albedo": result.albedo}
+            if args.command == "augment":
+                outputs = {"relit": result.relit}
+            for name, out_frames in outputs.items():
+                if source.is_video:
+                    path = staging / f"{prefix}{name}.mp4"
+                    media.save_video(path, out_frames, source.fps, audio_from=source.audio_path)
+                else:
+                    path = staging / f"{prefix}{name}.png"
+                    media.save_image(path, out_frames[0])
+                written.append(path)
+        for path in written:
+            os.replace(path, args.out / path.name)
+            print(args.out / path.name)
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+    return 0

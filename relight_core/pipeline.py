@@ -1,0 +1,490 @@
+"""The `Relighter`: media frames + an HDR probe → relit frames and albedo, streamed.
+
+One request runs as a generator of events so that callers (CLI, UI) can show progress and
+previews and can stop at any point by closing the generator:
+
+    Progress(...)   after every denoiser evaluation, with a cheap preview of the current x0
+    ChunkDone(...)  when a chunk of a long video is decoded
+    Finished(...)   once, with the stitched result
+
+Videos longer than one chunk are cut into chunks of `spec.chunk_frames` frames that share
+`spec.overlap_frames` frames. Each chunk after the first is conditioned on the previous chunk's
+relit and albedo output over the shared frames (the tokenizer is causal, so the first
+`overlap` frames of a chunk encode to exactly its first latent frames), and the shared frames are
+cross-faded when stitching, so no seam shows.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import math
+import queue
+import threading
+import time
+from collections import OrderedDict
+from contextlib import nullcontext
+from dataclasses import dataclass, field
+from typing import Callable, Iterator
+
+import numpy as np
+import torch
+
+from relight_core import lighting
+from relight_core.checkpoint import ModelSpec, load_model
+from relight_core.diffusion import SAMPLERS, ConditionedDenoiser, EDMPrecond, get_sigmas_karras, guided
+from relight_core.dit import assemble_inputs
+from relight_core.errors import InputError
+
+MODES = ("relight", "albedo", "render", "random")
+CLIPS = 3  # [input | relit | albedo]
+
+
+# ---------------------------------------------------------------------------------------------
+# Requests and events
+# ---------------------------------------------------------------------------------------------
+
+@dataclass
+class RelightRequest:
+    """One relighting job. Frames are float32 [T,H,W,3] in [0,1] at the working resolution."""
+
+    frames: np.ndarray
+    fps: float | None = None
+    audio_path: str | None = None
+    mode: str = "relight"                 # relight | albedo | render | random
+    probe: torch.Tensor | np.ndarray | None = None  # linear lat-long [h,w,3]
+    rotation: float = lighting.DEFAULT_ROTATION
+    rotate_light: bool = False
+    sweep: tuple[float, float] = (0.0, 360.0)
+    intensity: float = 1.0
+    albedo: np.ndarray | None = None      # [T,H,W,3] for mode="render"
+    steps: int | None = None              # None: the model's default
+    sampler: str | None = None            # None: the model's default
+    seed: int = 0
+    guidance: float = 0.0
+    should_stop: Callable[[], bool] | None = None
+
+
+@dataclass
+class Progress:
+    """One denoiser evaluation done."""
+
+    step: int                 # 1-based evaluation count within the chunk
+    total_steps: int          # evaluations per chunk
+    chunk: int                # 0-based
+    num_chunks: int
+    relit_preview: np.ndarray   # [H,W,3] in [0,1], cheap linear decode of the current x0
+    albedo_preview: np.ndarray
+    eta_s: float              # seconds left for the whole request
+
+
+@dataclass
+class ChunkDone:
+    """A chunk has been decoded; frames cover [start, start + len) of the video."""
+
+    chunk: int
+    num_chunks: int
+    start: int
+    relit: np.ndarray
+    albedo: np.ndarray
+
+
+@dataclass
+class RelightResult:
+    """The stitched output of a request."""
+
+    relit: np.ndarray          # [T,H,W,3] in [0,1]
+    albedo: np.ndarray
+    fps: float | None
+    audio_path: str | None
+    seed: int
+    mode: str
+    seconds: float = 0.0
+    info: dict = field(default_factory=dict)
+
+
+@dataclass
+class Finished:
+    result: RelightResult
+
+
+Event = Progress | ChunkDone | Finished
+
+
+# ---------------------------------------------------------------------------------------------
+# Chunking
+# ---------------------------------------------------------------------------------------------
+
+def plan_chunks(num_frames: int, chunk: int, overlap: int) -> list[tuple[int, int]]:
+    """(start, length) of each chunk; lengths are `chunk`, except a short video's single chunk."""
+    if num_frames <= chunk:
+        return [(0, num_frames)]
+    stride = chunk - overlap
+    starts = list(range(0, num_frames - chunk + 1, stride))
+    if starts[-1] + chunk < num_frames:
+        starts.append(num_frames - chunk)  # the last chunk ends flush with the video
+    return [(s, chunk) for s in starts]
+
+
+def pad_to_valid(frames: np.ndarray, temporal_factor: int) -> np.ndarray:
+    """Repeat the last frame until the count is 1 + k·temporal_factor (a causal tokenizer's rule)."""
+    t = frames.shape[0]
+    valid = 1 + math.ceil((t - 1) / temporal_factor) * temporal_factor
+    if valid == t:
+        return frames
+    return np.concatenate([frames, np.repeat(frames[-1:], valid - t, axis=0)], axis=0)
+
+
+def crossfade_weights(overlap: int) -> np.ndarray:
+    """Weights of the new chunk over the shared frames, rising strictly inside (0, 1)."""
+    return (np.arange(1, overlap + 1, dtype=np.float32) / (overlap + 1))
+
+
+# ---------------------------------------------------------------------------------------------
+# The pipeline
+# ---------------------------------------------------------------------------------------------
+
+class Relighter:
+    """The UniRelight joint model behind one streaming API; see the module docstring."""
+
+    def __init__(self, spec: ModelSpec, dit, tokenizer, device: str | torch.device = "cpu"):
+        self.spec = spec
+        self.dit = dit
+        self.tokenizer = tokenizer
+        self.device = torch.device(device)
+        self.denoiser = EDMPrecond(self._network)
+        self._latent_cache: OrderedDict[str, torch.Tensor] = OrderedDict()
+        self._preview_matrix: torch.Tensor | None = None
+        self._seconds_per_eval: float | None = None
+
+    @classmethod
+    def load(cls, model: str = "default", device: str | torch.device | None = None) -> "Relighter":
+        """Load "default", a preset name ("tiny", "small", "unirelight-7b") or a model directory."""
+        device = device or ("cuda" if torch.cuda.is_available() else "cpu")
+        spec, dit, tokenizer = load_model(model, device)
+        return cls(spec, dit, tokenizer, device)
+
+    # -- public API -------------------------------------------------------------------------
+
+    @property
+    def frame_multiple(self) -> int:
+        """Frame height and width must be multiples of this (tokenizer factor × patch size)."""
+        return self.tokenizer.spatial_factor * self.spec.dit.patch_spatial
+
+    def relight(self, request: RelightRequest) -> RelightResult:
+        """Run a request to completion and return its result."""
+        for event in self.run(request):
+            if isinstance(event, Finished):
+                return event.result
+        raise InputError("The job was stopped before it finished.")
+
+    def estimate_seconds(self, num_frames: int, height: int, width: int, steps: int | None = None) -> float:
+        """Rough wall time of a request, from a measured (or assumed) cost per token."""
+        steps = steps or self.spec.steps
+        chunks = plan_chunks(num_frames, self.spec.chunk_frames, self.spec.overlap_frames)
+        t = self.tokenizer.latent_frames(min(num_frames, self.spec.chunk_frames)) if num_frames > 1 else 1
+        tokens = CLIPS * t * (height // self.frame_multiple) * (width // self.frame_multiple)
+        per_eval = self._seconds_per_eval_at(tokens)
+        return len(chunks) * (steps + 1) * per_eval
+
+    def run(self, request: RelightRequest) -> Iterator[Event]:
+        """Run a request, yielding Progress, ChunkDone and finally Finished events."""
+        started = time.perf_counter()
+        frames = self._validate(request)
+        steps = request.steps or self.spec.steps
+        sampler_name = request.sampler or self.spec.sampler
+        num_frames, height, width = frames.shape[:3]
+        chunks = plan_chunks(num_frames, self.spec.chunk_frames, self.spec.overlap_frames)
+        rotations = self._rotations(request, num_frames)
+        probe = self._prepared_probe(request)
+        sigmas = get_sigmas_karras(steps, sigma_min=0.002, sigma_max=80.0).to(self.device)
+        evals_per_chunk = steps + 1 if request.guidance == 0 else 2 * (steps + 1)
+
+        relit_out = np.zeros_like(frames)
+        albedo_out = np.zeros_like(frames)
+        previous: tuple[int, np.ndarray, np.ndarray] | None = None  # (start, relit, albedo)
+        evals_done, total_evals = 0, len(chunks) * evals_per_chunk
+        eval_started = time.perf_counter()
+        for index, (start, length) in enumerate(chunks):
+            chunk_frames = frames[start:start + length]
+            padded = pad_to_valid(chunk_frames, self.tokenizer.temporal_factor)
+            albedo_in = None
+            if request.mode == "render":
+                albedo_in = pad_to_valid(request.albedo[start:start + length], self.tokenizer.temporal_factor)
+            overlap = None
+            if previous is not None:
+                prev_start, prev_relit, prev_albedo = previous
+                shared = prev_start + prev_relit.shape[0] - start
+                overlap = (prev_relit[-shared:], prev_albedo[-shared:]) if shared > 0 else None
+            rot = rotations[start:start + length]
+            rot = rot + [rot[-1]] * (padded.shape[0] - len(rot))
+            condition, mask, lighting_latents = self._conditions(
+                request, padded, albedo_in, probe, rot, overlap)
+            t = condition.shape[2] // CLIPS
+            generator = torch.Generator(device="cpu").manual_seed(request.seed * 1000003 + index)
+            noise = torch.randn(condition.shape, generator=generator).to(self.device)
+            cond_args = {"lighting": lighting_latents}
+            uncond_args = {"lighting": torch.zeros_like(lighting_latents)}
+            denoiser = ConditionedDenoiser(guided(self.denoiser, cond_args, uncond_args, request.guidance),
+                                           condition, mask)
+            sampler = SAMPLERS[sampler_name]
+
+            def work(emit, _index=index, _t=t, _denoiser=denoiser, _noise=noise):
+                def callback(info):
+                    nonlocal evals_done
+                    evals_done += 1 if request.guidance == 0 else 2
+                    elapsed = time.perf_counter() - eval_started
+                    eta = elapsed / evals_done * (total_evals - evals_done)
+                    relit_p, albedo_p = self._preview(info["denoised"], _t, height, width)
+                    step = min(evals_done - _index * evals_per_chunk, evals_per_chunk)
+                    emit(Progress(step, evals_per_chunk, _index, len(chunks), relit_p, albedo_p, eta))
+                    if request.should_stop is not None and request.should_stop():
+                        raise _Stopped
+
+                with torch.no_grad(), self._autocast():
+                    return sampler(_denoiser, _noise * sigmas[0], sigmas, callback=callback)
+
+            try:
+                x0 = yield from _stream(work)
+            except _Stopped:
+                return
+            relit_chunk, albedo_chunk = self._decode(x0, t, length)
+            weights = crossfade_weights(overlap[0].shape[0]) if overlap is not None else None
+            self._stitch(relit_out, relit_chunk, start, weights)
+            self._stitch(albedo_out, albedo_chunk, start, weights)
+            previous = (start, relit_chunk, albedo_chunk)
+            yield ChunkDone(index, len(chunks), start, relit_chunk, albedo_chunk)
+
+        seconds = time.perf_counter() - started
+        if evals_done:
+            self._seconds_per_eval = (time.perf_counter() - eval_started) / evals_done
+        yield Finished(RelightResult(relit_out, albedo_out, request.fps, request.audio_path, request.seed,
+                                     request.mode, seconds,
+                                     {"chunks": len(chunks), "steps": steps, "sampler": sampler_name,
+                                      "evaluations": evals_done, "model": self.spec.name,
+                                      "trained": self.spec.trained}))
+
+    # -- request preparation ----------------------------------------------------------------
+
+    def _validate(self, request: RelightRequest) -> np.ndarray:
+        if request.mode not in MODES:
+            raise InputError(f"Unknown mode '{request.mode}'; choose one of {', '.join(MODES)}.")
+        frames = np.asarray(request.frames, dtype=np.float32)
+        if frames.ndim != 4 or frames.shape[0] == 0 or frames.shape[-1] != 3:
+            raise InputError("The input has no frames; load an image or a video with at least one frame.")
+        _, height, width, _ = frames.shape
+        m = self.frame_multiple
+        if height % m or width % m:
+            raise InputError(f"The frames are {width}×{height}, but both sides must be multiples of {m}; "
+                             "resize them with media.resize_frames first.")
+        if request.mode in ("relight", "render") and request.probe is None:
+            raise InputError(f"The '{request.mode}' mode needs an HDR probe; pick one, or choose the "
+                             "'random' mode for random illuminations.")
+        if request.mode == "render":
+            if request.albedo is None or np.shape(request.albedo) != frames.shape:
+                raise InputError("Rendering from albedo needs an albedo with the same frame count and size "
+                                 "as the input; upload a matching albedo image or video.")
+        if request.sampler is not None and request.sampler not in SAMPLERS:
+            raise InputError(f"Unknown sampler '{request.sampler}'; choose one of {', '.join(SAMPLERS)}.")
+        if request.steps is not None and not 1 <= request.steps <= 1000:
+            raise InputError(f"Steps must be between 1 and 1000, not {request.steps}.")
+        if not math.isfinite(request.guidance) or request.guidance < 0:
+            raise InputError(f"Guidance must be a finite number ≥ 0, not {request.guidance}.")
+        if not math.isfinite(request.intensity) or request.intensity <= 0:
+            raise InputError(f"Intensity must be a positive number, not {request.intensity}.")
+        return np.clip(frames, 0.0, 1.0)
+
+    def _rotations(self, request: RelightRequest, num_frames: int) -> list[float]:
+        if request.rotate_light:
+            return [float(r) for r in lighting.rotation_sweep(num_frames, *request.sweep)]
+        return [float(request.rotation)] * num_frames
+
+    def _prepared_probe(self, request: RelightRequest) -> torch.Tensor | None:
+        if request.probe is None or request.mode in ("albedo", "random"):
+            return None
+        probe = torch.as_tensor(np.asarray(request.probe, dtype=np.float32))
+        return lighting.clean_hdr(probe, request.intensity)
+
+    # -- latents ----------------------------------------------------------------------------
+
+    def _encode(self, frames01: np.ndarray, cache: bool = True) -> torch.Tensor:
+        """Frames [T,H,W,3] in [0,1] → latents [1,16,t,h,w]; cached by content."""
+        key = None
+        if cache:
+            key = hashlib.sha1(frames01.tobytes() + str(frames01.shape).encode()).hexdigest()
+            if key in self._latent_cache:
+                self._latent_cache.move_to_end(key)
+                return self._latent_cache[key]
+        video = torch.from_numpy(np.ascontiguousarray(frames01)).permute(3, 0, 1, 2)[None] * 2 - 1
+        with torch.no_grad(), self._autocast():
+            latents = self.tokenizer.encode(video.to(self.device)).float()
+        if key is not None:
+            self._latent_cache[key] = latents
+            while len(self._latent_cache) > 32:
+                self._latent_cache.popitem(last=False)
+        return latents
+
+    def _encode_signed(self, video: torch.Tensor) -> torch.Tensor:
+        """A [T,H,W,3] tensor already in [-1,1] → latents (lighting encodings)."""
+        with torch.no_grad(), self._autocast():
+            return self.tokenizer.encode(video.permute(3, 0, 1, 2)[None].to(self.device)).float()
+
+    def _lighting_latents(self, probe: torch.Tensor, rotations: list[float], height: int, width: int
+                          ) -> torch.Tensor:
+        """[1, 51, t, h, w]: (env_ldr, mask, env_log, mask, env_dir, mask) latents of one chunk."""
+        key = hashlib.sha1(probe.numpy().tobytes() + repr((rotations, height, width)).encode()).hexdigest()
+        if key in self._latent_cache:
+            self._latent_cache.move_to_end(key)
+            return self._latent_cache[key]
+        panoramas = torch.stack([lighting.probe_in_camera(probe, height, width, rotation=r) for r in rotations])
+        encodings = lighting.encode_lighting(panoramas)
+        parts = []
+        for name in ("env_ldr", "env_log", "env_dir"):
+            latent = self._encode_signed(encodings[name])
+            parts += [latent, torch.ones_like(latent[:, :1])]
+        latents = torch.cat(parts, dim=1)
+        self._latent_cache[key] = latents
+        return latents
+
+    def _conditions(self, request, frames, albedo, probe, rotations, overlap):
+        """Condition latent [1,16,3t,h,w], its per-frame mask [1,1,3t,1,1] and lighting [1,51,t,h,w]."""
+        z_input = self._encode(frames)
+        _, c, t, h, w = z_input.shape
+        zeros = torch.zeros_like(z_input)
+        mask = torch.zeros(1, 1, CLIPS * t, 1, 1, device=self.device)
+        if request.mode == "render":
+            # Forward rendering: the albedo alone conditions the relit clip; the input is dropped.
+            condition = torch.cat([zeros, zeros, self._encode(albedo)], dim=2)
+            mask[:, :, :t] = 1.0
+            mask[:, :, 2 * t:] = 1.0
+        else:
+            condition = torch.cat([z_input, zeros, zeros], dim=2)
+            mask[:, :, :t] = 1.0
+        if overlap is not None:
+            # Continue the previous chunk: its output over the shared frames becomes a condition.
+            prev_relit, prev_albedo = overlap
+            z_relit, z_albedo = self._encode(prev_relit, cache=False), self._encode(prev_albedo, cache=False)
+            k = z_relit.shape[2]
+            condition[:, :, t:t + k] = z_relit
+            mask[:, :, t:t + k] = 1.0
+            if request.mode != "render":
+                condition[:, :, 2 * t:2 * t + k] = z_albedo
+                mask[:, :, 2 * t:2 * t + k] = 1.0
+        if probe is None:
+            lighting_latents = torch.zeros(1, 3 * (c + 1), t, h, w, device=self.device)
+        else:
+            lighting_latents = self._lighting_latents(probe, rotations, frames.shape[1], frames.shape[2])
+        return condition, mask, lighting_latents
+
+    def _network(self, x_in: torch.Tensor, c_noise: torch.Tensor, lighting: torch.Tensor,
+                 condition_mask: torch.Tensor) -> torch.Tensor:
+        """The raw DiT on preconditioned input: assemble the 69 channels and run it."""
+        b, _, frames, h, w = x_in.shape
+        mask = condition_mask.expand(b, 1, frames, h, w)
+        tokens = assemble_inputs(x_in, mask, lighting.expand(b, -1, -1, -1, -1), None)
+        return self.dit(tokens, c_noise.expand(b)).float()
+
+    # -- outputs ----------------------------------------------------------------------------
+
+    def _decode(self, x0: torch.Tensor, t: int, length: int) -> tuple[np.ndarray, np.ndarray]:
+        """Decode the relit and albedo clips of x0 to frames [length,H,W,3] in [0,1]."""
+        clips = x0[:, :, t:].float()
+        both = torch.cat([clips[:, :, :t], clips[:, :, t:]], dim=0)  # [2, 16, t, h, w]
+        with torch.no_grad(), self._autocast():
+            video = self.tokenizer.decode(both).float()
+        frames = ((video.clamp(-1, 1) + 1) / 2).permute(0, 2, 3, 4, 1).cpu().numpy()
+        return frames[0, :length], frames[1, :length]
+
+    @staticmethod
+    def _stitch(out: np.ndarray, chunk: np.ndarray, start: int, weights: np.ndarray | None) -> None:
+        if weights is None:
+            out[start:start + chunk.shape[0]] = chunk
+            return
+        k = weights.shape[0]
+        w = weights[:, None, None, None]
+        out[start:start + k] = (1 - w) * out[start:start + k] + w * chunk[:k]
+        out[start + k:start + chunk.shape[0]] = chunk[k:]
+
+    def _preview(self, x0: torch.Tensor, t: int, height: int, width: int) -> tuple[np.ndarray, np.ndarray]:
+        """Cheap preview: a fitted linear map latent → RGB on the first latent frame of each clip."""
+        matrix = self._latent_to_rgb()
+        out = []
+        for clip in (1, 2):
+            latent = x0[0, :, clip * t].float()                                  # [16, h, w]
+            rgb = torch.einsum("chw,cd->dhw", torch.cat([latent, torch.ones_like(latent[:1])]), matrix)
+            rgb = torch.nn.functional.interpolate(rgb[None], size=(height, width), mode="bilinear",
+                                                  align_corners=False)[0]
+            out.append(rgb.clamp(0, 1).permute(1, 2, 0).cpu().numpy())
+        return out[0], out[1]
+
+    def _latent_to_rgb(self) -> torch.Tensor:
+        """[17, 3] least-squares map from (latent, 1) to the mean colour of each latent pixel."""
+        if self._preview_matrix is None:
+            size = 8 * self.frame_multiple
+            generator = torch.Generator().manual_seed(0)
+            blocks = torch.rand(3, 3, size // 16, size // 16, generator=generator)
+            images = torch.nn.functional.interpolate(blocks, size=(size, size), mode="nearest")  # [3,3,S,S]
+            latents = torch.cat([self._encode_signed(img.permute(1, 2, 0)[None] * 2 - 1) for img in images])
+            f = self.tokenizer.spatial_factor
+            target = torch.nn.functional.avg_pool2d(images, f)                   # [3,3,S/f,S/f]
+            a = latents[:, :, 0].permute(0, 2, 3, 1).reshape(-1, latents.shape[1])
+            a = torch.cat([a, torch.ones_like(a[:, :1])], dim=1)
+            b = target.permute(0, 2, 3, 1).reshape(-1, 3).to(a)
+            self._preview_matrix = torch.linalg.lstsq(a.cpu(), b.cpu()).solution.to(self.device)
+        return self._preview_matrix
+
+    def _autocast(self):
+        if self.spec.autocast_bf16:
+            return torch.autocast(self.device.type, dtype=torch.bfloat16)
+        return nullcontext()
+
+    def _seconds_per_eval_at(self, tokens: int) -> float:
+        """Seconds per denoiser evaluation; measured on the last run when available."""
+        if self._seconds_per_eval is not None:
+            return self._seconds_per_eval
+        # Unmeasured: assume a CPU doing ~200 GFLOP/s on 2·params·tokens + attention.
+        params = sum(p.numel() for p in self.dit.parameters())
+        flops = 2 * params * tokens + 4 * tokens * tokens * self.spec.dit.width * self.spec.dit.depth
+        return flops / 2e11
+
+
+class _Stopped(Exception):
+    """Raised from the sampler callback when the caller asked to stop."""
+
+
+def _stream(work: Callable[[Callable[[Progress], None]], torch.Tensor]):
+    """Run `work(emit)` on a worker thread and yield what it emits; return its result.
+
+    Samplers report through a plain callback; a thread turns those calls into generator items
+    without the sampler knowing. Closing the generator stops the worker at its next callback.
+    """
+    events: queue.Queue = queue.Queue()
+    stop = threading.Event()
+    outcome: dict = {}
+
+    def emit(event: Progress) -> None:
+        if stop.is_set():
+            raise _Stopped
+        events.put(event)
+
+    def target() -> None:
+        try:
+            outcome["value"] = work(emit)
+        except BaseException as exc:  # re-raised on the caller's thread below
+            outcome["error"] = exc
+        finally:
+            events.put(_DONE)
+
+    worker = threading.Thread(target=target, name="relight-sampler", daemon=True)
+    worker.start()
+    try:
+        while (event := events.get()) is not _DONE:
+            yield event
+    finally:
+        stop.set()
+        worker.join()
+    if "error" in outcome:
+        raise outcome["error"]
+    return outcome["value"]
+
+
+_DONE = object()
