@@ -1,0 +1,430 @@
+"""The UniRelight joint DiT: a Cosmos-Predict1 video transformer over [input | relit | albedo].
+
+Three latent clips of equal length are concatenated along time and denoised together; full
+self-attention runs over all of them, so the relit video and its albedo see each other and the
+input. Each token carries the 72 channels spelled out in `CHANNELS`; the last three are a learned
+clip-type embedding appended here. The blocks follow the released Cosmos-Predict1 7B network
+(AdaLN-LoRA modulation, RMSNorm on queries and keys, 3D RoPE repeated per clip, GELU MLP), and
+`convert_released_state_dict` maps a released checkpoint onto these modules by name.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+#################################################################################
+#                         Token layout: the 72 input channels                   #
+#################################################################################
+
+LATENT_CHANNELS = 16
+NUM_CLIPS = 3                                    # [input | relit | albedo] along time
+CLIP_NAMES = ("input", "relit", "albedo")
+LIGHTING_KEYS = ("env_ldr", "env_log", "env_dir")  # released `condition_keys` order (env_dir = env_nrm)
+LIGHTING_CHANNELS = len(LIGHTING_KEYS) * (LATENT_CHANNELS + 1)  # 51: each latent + its mask
+
+CHANNELS: dict[str, slice] = {
+    "noisy": slice(0, 16),             # the latent being denoised (c_in-scaled)
+    "condition_mask": slice(16, 17),   # 1 on frames that are given (clean condition)
+    "env_ldr": slice(17, 33),          # lighting latents, non-zero in the relit clip only
+    "env_ldr_mask": slice(33, 34),
+    "env_log": slice(34, 50),
+    "env_log_mask": slice(50, 51),
+    "env_dir": slice(51, 67),
+    "env_dir_mask": slice(67, 68),
+    "padding_mask": slice(68, 69),     # 1 on padded pixels (released inference: all zeros)
+    "clip_type": slice(69, 72),        # learned Embedding(3, 3), row = clip index
+}
+ASSEMBLED_CHANNELS = CHANNELS["padding_mask"].stop   # 69, what `assemble_inputs` returns
+TOKEN_CHANNELS = CHANNELS["clip_type"].stop          # 72, what the patch embedding sees
+
+
+def pack_lighting(env_ldr: torch.Tensor | None, env_log: torch.Tensor | None,
+                  env_dir: torch.Tensor | None) -> torch.Tensor:
+    """[B,51,t,h,w] from the three lighting latents; a missing one is zeros with mask 0 (dropped)."""
+    given = next(z for z in (env_ldr, env_log, env_dir) if z is not None)
+    parts = []
+    for latent in (env_ldr, env_log, env_dir):
+        present = latent is not None
+        latent = latent if present else torch.zeros_like(given)
+        parts += [latent, torch.full_like(latent[:, :1], float(present))]
+    return torch.cat(parts, dim=1)                                   # (B, 51, t, h, w)
+
+
+def assemble_inputs(noisy: torch.Tensor, condition_mask: torch.Tensor, lighting: torch.Tensor | None,
+                    padding_mask: torch.Tensor | None) -> torch.Tensor:
+    """[B,69,3t,h,w]: noisy latent, condition mask, lighting (relit clip only), padding mask."""
+    b, _, frames, h, w = noisy.shape
+    t = frames // NUM_CLIPS
+    mask = condition_mask.to(noisy.dtype).expand(b, 1, frames, h, w)               # (B, 1, 3t, h, w)
+    light = noisy.new_zeros(b, LIGHTING_CHANNELS, frames, h, w)                    # (B, 51, 3t, h, w)
+    if lighting is not None:
+        light[:, :, t:2 * t] = lighting.to(noisy.dtype)                            # relit clip only
+    if padding_mask is None:
+        pad = noisy.new_zeros(b, 1, frames, h, w)                                  # (B, 1, 3t, h, w)
+    else:
+        pad = F.interpolate(padding_mask.to(noisy.dtype), size=(h, w), mode="nearest")  # (B, 1, h, w)
+        pad = pad[:, :, None].expand(b, 1, frames, h, w)                           # (B, 1, 3t, h, w)
+    return torch.cat([noisy, mask, light, pad], dim=1)                             # (B, 69, 3t, h, w)
+
+
+#################################################################################
+#                                    Config                                     #
+#################################################################################
+
+@dataclass(frozen=True)
+class DiTConfig:
+    """Size and options of a JointDiT; the token layout (72 channels, 3 clips) is fixed."""
+
+    width: int = 384                       # model channels D
+    depth: int = 8                         # number of transformer blocks
+    num_heads: int = 6                     # attention heads; head dim = width / num_heads
+    mlp_ratio: float = 4.0                 # MLP hidden = mlp_ratio · width
+    adaln_lora_dim: int = 64               # rank of the AdaLN-LoRA modulation
+    patch_spatial: int = 2                 # latent pixels per token side
+    patch_temporal: int = 1                # latent frames per token
+    out_channels: int = LATENT_CHANNELS
+    cross_attention: bool = False          # the released model has it (its context is all zeros)
+    context_dim: int = 1024                # T5 embedding width of the released model
+    rope_extrapolation: tuple[float, float, float] = (1.0, 1.0, 2.0)  # (h, w, t) NTK ratios
+    rope_theta: float = 10000.0
+
+    @property
+    def head_dim(self) -> int:
+        return self.width // self.num_heads
+
+
+DIT_PRESETS: dict[str, DiTConfig] = {
+    # milliseconds on a CPU; for tests
+    "tiny": DiTConfig(width=64, depth=2, num_heads=2, adaln_lora_dim=16),
+    # the CPU default model, ~16.5M parameters
+    "small": DiTConfig(width=384, depth=8, num_heads=6, adaln_lora_dim=64),
+    # the released UniRelight weights (Cosmos-Predict1-7B), ~7.23B parameters
+    "unirelight-7b": DiTConfig(width=4096, depth=28, num_heads=32, adaln_lora_dim=256, cross_attention=True),
+}
+
+
+#################################################################################
+#                 Embedding layers: timestep, 3D RoPE, normalisation            #
+#################################################################################
+
+class RMSNorm(nn.Module):
+    """RMS normalisation with a learned scale, computed in fp32 so bf16 autocast stays stable."""
+
+    def __init__(self, dim: int, eps: float = 1e-6):
+        super().__init__()
+        self.eps = eps
+        self.weight = nn.Parameter(torch.ones(dim))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        x32 = x.float()
+        x32 = x32 * torch.rsqrt(x32.pow(2).mean(-1, keepdim=True) + self.eps)
+        return (x32 * self.weight.float()).to(x.dtype)
+
+
+def layer_norm(x: torch.Tensor) -> torch.Tensor:
+    """Affine-free LayerNorm (eps 1e-6) in fp32; the modulation supplies scale and shift."""
+    return F.layer_norm(x.float(), x.shape[-1:], eps=1e-6).to(x.dtype)
+
+
+def modulate(x: torch.Tensor, shift: torch.Tensor, scale: torch.Tensor) -> torch.Tensor:
+    return x * (1 + scale.unsqueeze(1)) + shift.unsqueeze(1)
+
+
+class TimestepEmbedder(nn.Module):
+    """c_noise → (normalised sinusoid for the modulations, shared AdaLN-LoRA term [B, 3D])."""
+
+    def __init__(self, width: int):
+        super().__init__()
+        self.width = width
+        self.linear_1 = nn.Linear(width, width, bias=False)
+        self.linear_2 = nn.Linear(width, 3 * width, bias=False)
+        self.norm = RMSNorm(width)
+
+    def sinusoid(self, c_noise: torch.Tensor) -> torch.Tensor:
+        half = self.width // 2
+        freqs = torch.exp(-math.log(10000.0) * torch.arange(half, device=c_noise.device) / half)
+        angles = c_noise.float()[:, None] * freqs[None]                  # (B, D/2)
+        return torch.cat([torch.cos(angles), torch.sin(angles)], dim=-1)  # (B, D), cos first
+
+    def forward(self, c_noise: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        sin = self.sinusoid(c_noise).to(self.linear_1.weight.dtype)     # (B, D)
+        adaln_lora = self.linear_2(F.silu(self.linear_1(sin)))          # (B, 3D)
+        # With AdaLN-LoRA the released model feeds the raw sinusoid (normalised) to every block.
+        return self.norm(sin), adaln_lora
+
+
+def rope_angles(head_dim: int, t: int, h: int, w: int, extrapolation=(1.0, 1.0, 2.0),
+                theta: float = 10000.0, device=None) -> torch.Tensor:
+    """[t·h·w, head_dim] rotary angles for one clip, laid out [t | h | w] twice (released order)."""
+    dim_h = head_dim // 6 * 2                     # 42 for head dim 128
+    dim_t = head_dim - 2 * dim_h                  # 44 for head dim 128
+
+    def axis(length: int, dim: int, ratio: float) -> torch.Tensor:
+        ntk = ratio ** (dim / (dim - 2))          # NTK-aware base scaling for extrapolation
+        freqs = 1.0 / (theta * ntk) ** (torch.arange(0, dim, 2, dtype=torch.float64, device=device) / dim)
+        return torch.outer(torch.arange(length, dtype=torch.float64, device=device), freqs)
+
+    ratio_h, ratio_w, ratio_t = extrapolation
+    ang_t = axis(t, dim_t, ratio_t)[:, None, None].expand(t, h, w, -1)   # (t, h, w, dim_t/2)
+    ang_h = axis(h, dim_h, ratio_h)[None, :, None].expand(t, h, w, -1)   # (t, h, w, dim_h/2)
+    ang_w = axis(w, dim_h, ratio_w)[None, None, :].expand(t, h, w, -1)   # (t, h, w, dim_h/2)
+    half = torch.cat([ang_t, ang_h, ang_w], dim=-1)                      # (t, h, w, hd/2)
+    return torch.cat([half, half], dim=-1).reshape(t * h * w, head_dim).float()
+
+
+def apply_rope(x: torch.Tensor, cos: torch.Tensor, sin: torch.Tensor) -> torch.Tensor:
+    """Rotate dims i and i + hd/2 together (non-interleaved, as transformer_engine does), in fp32."""
+    x32 = x.float()
+    x1, x2 = x32.chunk(2, dim=-1)
+    rotated = torch.cat([-x2, x1], dim=-1)
+    return (x32 * cos + rotated * sin).to(x.dtype)
+
+
+#################################################################################
+#                                 Core DiT model                                #
+#################################################################################
+
+class Attention(nn.Module):
+    """Multi-head attention with RMSNorm on per-head queries and keys; self- or cross-attention."""
+
+    def __init__(self, width: int, num_heads: int, context_dim: int | None = None):
+        super().__init__()
+        self.num_heads = num_heads
+        head_dim = width // num_heads
+        kv_dim = width if context_dim is None else context_dim
+        self.q_proj = nn.Linear(width, width, bias=False)
+        self.k_proj = nn.Linear(kv_dim, width, bias=False)
+        self.v_proj = nn.Linear(kv_dim, width, bias=False)
+        self.q_norm = RMSNorm(head_dim)
+        self.k_norm = RMSNorm(head_dim)
+        self.out_proj = nn.Linear(width, width, bias=False)
+
+    def heads(self, x: torch.Tensor) -> torch.Tensor:
+        return x.unflatten(-1, (self.num_heads, -1)).transpose(1, 2)          # (B, heads, L, hd)
+
+    def forward(self, x: torch.Tensor, context: torch.Tensor | None = None,
+                rope: tuple[torch.Tensor, torch.Tensor] | None = None) -> torch.Tensor:
+        source = x if context is None else context                             # (B, L or M, ·)
+        q = self.q_norm(self.heads(self.q_proj(x)))                            # (B, heads, L, hd)
+        k = self.k_norm(self.heads(self.k_proj(source)))                       # (B, heads, L|M, hd)
+        v = self.heads(self.v_proj(source))                                    # (B, heads, L|M, hd)
+        if rope is not None:
+            q, k = apply_rope(q, *rope), apply_rope(k, *rope)
+        out = F.scaled_dot_product_attention(q, k, v)                          # (B, heads, L, hd)
+        return self.out_proj(out.transpose(1, 2).flatten(2))                   # (B, L, D)
+
+
+class MLP(nn.Module):
+    def __init__(self, width: int, hidden: int):
+        super().__init__()
+        self.fc1 = nn.Linear(width, hidden, bias=False)
+        self.fc2 = nn.Linear(hidden, width, bias=False)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.fc2(F.gelu(self.fc1(x)))
+
+
+class AdaLNModulation(nn.Module):
+    """Low-rank per-layer modulation added to the shared AdaLN-LoRA term: `chunks` × [B, D]."""
+
+    def __init__(self, width: int, lora_dim: int, chunks: int):
+        super().__init__()
+        self.chunks = chunks
+        self.down = nn.Linear(width, lora_dim, bias=False)
+        self.up = nn.Linear(lora_dim, chunks * width, bias=False)
+
+    def forward(self, emb: torch.Tensor, adaln_lora: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        out = self.up(self.down(F.silu(emb))) + adaln_lora[:, :self.up.out_features]  # (B, chunks·D)
+        return out.chunk(self.chunks, dim=-1)
+
+
+class JointDiTBlock(nn.Module):
+    """Self-attention over all three clips, optional cross-attention, MLP; each AdaLN-modulated."""
+
+    def __init__(self, config: DiTConfig):
+        super().__init__()
+        d, r = config.width, config.adaln_lora_dim
+        self.self_attn = Attention(d, config.num_heads)
+        self.self_attn_mod = AdaLNModulation(d, r, 3)
+        if config.cross_attention:
+            self.cross_attn = Attention(d, config.num_heads, context_dim=config.context_dim)
+            self.cross_attn_mod = AdaLNModulation(d, r, 3)
+        else:
+            self.cross_attn = self.cross_attn_mod = None
+        self.mlp = MLP(d, int(d * config.mlp_ratio))
+        self.mlp_mod = AdaLNModulation(d, r, 3)
+
+    def forward(self, x, emb, adaln_lora, rope, context=None):
+        shift, scale, gate = self.self_attn_mod(emb, adaln_lora)                      # 3 × (B, D)
+        x = x + gate.unsqueeze(1) * self.self_attn(modulate(layer_norm(x), shift, scale), rope=rope)
+        # A zero context gives exactly zero cross-attention (no biases, RMSNorm(0) = 0): skip it.
+        if self.cross_attn is not None and context is not None:
+            shift, scale, gate = self.cross_attn_mod(emb, adaln_lora)                 # 3 × (B, D)
+            x = x + gate.unsqueeze(1) * self.cross_attn(modulate(layer_norm(x), shift, scale), context)
+        shift, scale, gate = self.mlp_mod(emb, adaln_lora)                            # 3 × (B, D)
+        return x + gate.unsqueeze(1) * self.mlp(modulate(layer_norm(x), shift, scale))  # (B, L, D)
+
+
+class FinalLayer(nn.Module):
+    """AdaLN-modulated projection of each token back to a patch of latent channels."""
+
+    def __init__(self, config: DiTConfig):
+        super().__init__()
+        patch = config.patch_spatial ** 2 * config.patch_temporal
+        self.modulation = AdaLNModulation(config.width, config.adaln_lora_dim, 2)
+        self.linear = nn.Linear(config.width, patch * config.out_channels, bias=False)
+
+    def forward(self, x, emb, adaln_lora):
+        shift, scale = self.modulation(emb, adaln_lora)                                # 2 × (B, D)
+        return self.linear(modulate(layer_norm(x), shift, scale))                      # (B, L, p·p·pt·C)
+
+
+class JointDiT(nn.Module):
+    """Denoiser network F(c_in·x, c_noise) over [input | relit | albedo] latent clips."""
+
+    def __init__(self, config: DiTConfig):
+        super().__init__()
+        self.config = config
+        c = config
+        patch_in = TOKEN_CHANNELS * c.patch_temporal * c.patch_spatial ** 2
+        self.clip_type_embed = nn.Embedding(NUM_CLIPS, TOKEN_CHANNELS - ASSEMBLED_CHANNELS)
+        self.patch_embed = nn.Linear(patch_in, c.width, bias=False)
+        self.t_embedder = TimestepEmbedder(c.width)
+        self.blocks = nn.ModuleList([JointDiTBlock(c) for _ in range(c.depth)])
+        self.final_layer = FinalLayer(c)
+        self.initialize_weights()
+
+    def initialize_weights(self):
+        # Linear layers: Xavier uniform (DiT / Cosmos convention).
+        for module in self.modules():
+            if isinstance(module, nn.Linear):
+                nn.init.xavier_uniform_(module.weight)
+        nn.init.normal_(self.clip_type_embed.weight, std=0.02)
+        # Timestep MLP: small normal init, as DiT.
+        nn.init.normal_(self.t_embedder.linear_1.weight, std=0.02)
+        # adaLN-zero: every modulation starts at zero, including the shared LoRA term, so each block
+        # is the identity and training starts from a stable residual stack.
+        nn.init.zeros_(self.t_embedder.linear_2.weight)
+        for block in self.blocks:
+            for mod in (block.self_attn_mod, block.cross_attn_mod, block.mlp_mod):
+                if mod is not None:
+                    nn.init.zeros_(mod.up.weight)
+        # Zero output: the initial network predicts F = 0, so x0 = c_skip·x.
+        nn.init.zeros_(self.final_layer.modulation.up.weight)
+        nn.init.zeros_(self.final_layer.linear.weight)
+
+    def embed_inputs(self, x: torch.Tensor) -> torch.Tensor:
+        """Append the learned clip-type embedding: [B,69,3t,h,w] → [B,72,3t,h,w]."""
+        b, _, frames, h, w = x.shape
+        clip = torch.arange(NUM_CLIPS, device=x.device).repeat_interleave(frames // NUM_CLIPS)  # (3t,)
+        types = self.clip_type_embed(clip).T.to(x.dtype)                   # (3, 3t)
+        types = types[None, :, :, None, None].expand(b, -1, -1, h, w)      # (B, 3, 3t, h, w)
+        return torch.cat([x, types], dim=1)                                # (B, 72, 3t, h, w)
+
+    def patchify(self, x: torch.Tensor) -> torch.Tensor:
+        """[B,C,T,H,W] → [B, T'·H'·W', C·pt·p·p], features ordered (c, t, h, w) like the release."""
+        b, c, t, h, w = x.shape
+        pt, p = self.config.patch_temporal, self.config.patch_spatial
+        x = x.reshape(b, c, t // pt, pt, h // p, p, w // p, p)
+        x = x.permute(0, 2, 4, 6, 1, 3, 5, 7)                              # (B, T', H', W', C, pt, p, p)
+        return x.reshape(b, (t // pt) * (h // p) * (w // p), c * pt * p * p)
+
+    def unpatchify(self, x: torch.Tensor, t: int, h: int, w: int) -> torch.Tensor:
+        """[B, L, p·p·pt·C] (features ordered h, w, t, c like the release) → [B,C,T,H,W]."""
+        b = x.shape[0]
+        pt, p, c = self.config.patch_temporal, self.config.patch_spatial, self.config.out_channels
+        x = x.reshape(b, t // pt, h // p, w // p, p, p, pt, c)
+        x = x.permute(0, 7, 1, 6, 2, 4, 3, 5)                              # (B, C, T', pt, H', p, W', p)
+        return x.reshape(b, c, t, h, w)
+
+    def rope(self, t: int, h: int, w: int, device) -> tuple[torch.Tensor, torch.Tensor]:
+        """cos, sin [3·t·h·w, hd] in token units: one clip's 3D RoPE, repeated for each clip."""
+        c = self.config
+        angles = rope_angles(c.head_dim, t, h, w, c.rope_extrapolation, c.rope_theta, device)  # (thw, hd)
+        angles = angles.repeat(NUM_CLIPS, 1)                               # (3·thw, hd)
+        return angles.cos(), angles.sin()
+
+    def forward(self, x: torch.Tensor, c_noise: torch.Tensor, context: torch.Tensor | None = None
+                ) -> torch.Tensor:
+        """x [B,69,3t,h,w] (see CHANNELS), c_noise [B], context [B,M,1024] or None → [B,16,3t,h,w]."""
+        if context is not None and not self.config.cross_attention:
+            raise ValueError("this DiTConfig has cross_attention=False; pass context=None")
+        _, _, frames, h, w = x.shape
+        pt, p = self.config.patch_temporal, self.config.patch_spatial
+        tokens = self.patch_embed(self.patchify(self.embed_inputs(x)))     # (B, L, D), L = 3t·h'·w'
+        rope = self.rope(frames // NUM_CLIPS // pt, h // p, w // p, x.device)  # 2 × (L, hd)
+        emb, adaln_lora = self.t_embedder(c_noise)                         # (B, D), (B, 3D)
+        for block in self.blocks:
+            tokens = block(tokens, emb, adaln_lora, rope, context)         # (B, L, D)
+        out = self.final_layer(tokens, emb, adaln_lora)                    # (B, L, p·p·pt·16)
+        return self.unpatchify(out, frames, h, w)                          # (B, 16, 3t, h, w)
+
+
+def param_count(config: DiTConfig) -> int:
+    """Number of parameters of a JointDiT, counted on the meta device (no memory)."""
+    with torch.device("meta"):
+        model = JointDiT(config)
+    return sum(p.numel() for p in model.parameters())
+
+
+#################################################################################
+#                Released checkpoint names (Cosmos-Predict1 GeneralDIT)         #
+#################################################################################
+
+def released_key_map() -> list[tuple[str, str]]:
+    """The rename table: (released GeneralDIT name regex, our name template), `\\1` = block index."""
+    table = [
+        (r"x_embedder\.proj\.1\.weight", "patch_embed.weight"),
+        (r"view_embeddings\.weight", "clip_type_embed.weight"),
+        (r"t_embedder\.1\.linear_([12])\.weight", r"t_embedder.linear_\1.weight"),
+        (r"affline_norm\.weight", "t_embedder.norm.weight"),
+        (r"final_layer\.linear\.weight", "final_layer.linear.weight"),
+        (r"final_layer\.adaLN_modulation\.1\.weight", "final_layer.modulation.down.weight"),
+        (r"final_layer\.adaLN_modulation\.2\.weight", "final_layer.modulation.up.weight"),
+    ]
+    # Released blocks are "FA-CA-MLP": sub-layer 0 self-attention, 1 cross-attention, 2 MLP.
+    sublayers = {"0": "self_attn", "1": "cross_attn", "2": "mlp"}
+    attention = {"to_q.0": "q_proj", "to_q.1": "q_norm", "to_k.0": "k_proj", "to_k.1": "k_norm",
+                 "to_v.0": "v_proj", "to_out.0": "out_proj"}
+    mlp = {"layer1": "fc1", "layer2": "fc2"}
+    block = r"blocks\.block(\d+)\.blocks\."
+    for index, ours in sublayers.items():
+        table.append((rf"{block}{index}\.adaLN_modulation\.1\.weight", rf"blocks.\1.{ours}_mod.down.weight"))
+        table.append((rf"{block}{index}\.adaLN_modulation\.2\.weight", rf"blocks.\1.{ours}_mod.up.weight"))
+        parts = mlp if ours == "mlp" else attention
+        inner = "block" if ours == "mlp" else r"block\.attn"
+        for released, part in parts.items():
+            table.append((rf"{block}{index}\.{inner}\.{re.escape(released)}\.weight",
+                          rf"blocks.\1.{ours}.{part}.weight"))
+    return table
+
+
+_RELEASED_KEY_MAP = [(re.compile(pattern), target) for pattern, target in released_key_map()]
+
+
+def released_to_ours(name: str) -> str | None:
+    """Our parameter name for a released GeneralDIT name, or None (buffers, extra state)."""
+    for pattern, target in _RELEASED_KEY_MAP:
+        match = pattern.fullmatch(name)
+        if match is not None:
+            return match.expand(target)
+    return None
+
+
+def convert_released_state_dict(state_dict: dict[str, torch.Tensor], prefix: str = "net."
+                                ) -> tuple[dict[str, torch.Tensor], list[str]]:
+    """Rename a released checkpoint's network weights to ours; also returns the keys left unmapped."""
+    converted, unmapped = {}, []
+    for name, tensor in state_dict.items():
+        ours = released_to_ours(name[len(prefix):] if prefix and name.startswith(prefix) else name)
+        if ours is None:
+            unmapped.append(name)
+        else:
+            converted[ours] = tensor
+    return converted, unmapped
