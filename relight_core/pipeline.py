@@ -361,7 +361,10 @@ class Relighter:
             mask[:, :, :t] = 1.0
         if overlap is not None:
             # Continue the previous chunk: its output over the shared frames becomes a condition.
-            prev_relit, prev_albedo = overlap
+            # Only a causal prefix of 1 + j·factor shared frames maps onto whole latent frames.
+            factor = self.tokenizer.temporal_factor
+            usable = 1 + (overlap[0].shape[0] - 1) // factor * factor
+            prev_relit, prev_albedo = overlap[0][:usable], overlap[1][:usable]
             z_relit, z_albedo = self._encode(prev_relit, cache=False), self._encode(prev_albedo, cache=False)
             k = z_relit.shape[2]
             condition[:, :, t:t + k] = z_relit

@@ -1,0 +1,99 @@
+"""The command line end to end on real files, and its one-sentence errors (exit code 2)."""
+
+import subprocess
+import sys
+from pathlib import Path
+
+import av
+import numpy as np
+import pytest
+from PIL import Image
+
+from relight_core.cli import main
+from tests.factory import make_mp4, make_png, make_sun_probe, write_exr
+
+ROOT = Path(__file__).resolve().parent.parent
+FAST = ["--model", "tiny", "--steps", "2", "--size", "48"]
+
+
+@pytest.fixture(scope="module")
+def files(tmp_path_factory):
+    d = tmp_path_factory.mktemp("inputs")
+    return {
+        "png": make_png(d / "photo.png"),
+        "mp4": make_mp4(d / "clip.mp4", frames=12, audio=True),
+        "probe": make_sun_probe(d / "sun.exr"),
+    }
+
+
+def test_relight_image_writes_relit_and_albedo_png(files, tmp_path):
+    assert main(["relight", str(files["png"]), "--probe", str(files["probe"]), "--rotation", "45",
+                 "--out", str(tmp_path), *FAST]) == 0
+    for name in ("relit.png", "albedo.png"):
+        img = np.asarray(Image.open(tmp_path / name))
+        assert img.shape == (32, 48, 3)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["albedo.png", "relit.png"]
+
+
+def test_relight_video_keeps_frames_fps_and_audio(files, tmp_path):
+    assert main(["relight", str(files["mp4"]), "--probe", str(files["probe"]), "--rotate-light",
+                 "--out", str(tmp_path), *FAST]) == 0
+    for name in ("relit.mp4", "albedo.mp4"):
+        with av.open(str(tmp_path / name)) as container:
+            video = container.streams.video[0]
+            assert round(float(video.average_rate)) == 12
+            assert sum(1 for _ in container.decode(video=0)) == 12
+            assert len(container.streams.audio) == 1
+
+
+def test_augment_writes_one_result_per_seed(files, tmp_path):
+    assert main(["augment", str(files["png"]), "--seeds", "0-2", "--out", str(tmp_path), *FAST]) == 0
+    outs = sorted(p.name for p in tmp_path.iterdir())
+    assert outs == ["seed0000_relit.png", "seed0001_relit.png", "seed0002_relit.png"]
+    a, b = (np.asarray(Image.open(tmp_path / n)) for n in outs[:2])
+    assert not np.array_equal(a, b)
+
+
+def test_albedo_command(files, tmp_path):
+    assert main(["albedo", str(files["png"]), "--out", str(tmp_path), *FAST]) == 0
+    assert [p.name for p in tmp_path.iterdir()] == ["albedo.png"]
+
+
+def _bad_inputs(d: Path) -> dict:
+    truncated = d / "truncated.png"
+    truncated.write_bytes(make_png(d / "whole.png").read_bytes()[:200])
+    text_mp4 = d / "notes.mp4"
+    text_mp4.write_text("these are not video frames\n" * 20)
+    nan_probe = write_exr(d / "nan.exr", np.full((8, 16, 3), np.nan, np.float32))
+    empty = d / "empty.mp4"
+    with av.open(str(empty), "w") as container:  # a valid container whose video stream has no frames
+        stream = container.add_stream("libx264", rate=12)
+        stream.width, stream.height = 48, 32
+    return {"truncated": truncated, "text_mp4": text_mp4, "nan_probe": nan_probe, "empty": empty}
+
+
+@pytest.mark.parametrize("case", ["truncated", "text_mp4", "nan_probe", "empty", "missing"])
+def test_bad_input_exits_2_with_one_sentence_and_writes_nothing(case, files, tmp_path, capsys):
+    bad = _bad_inputs(tmp_path)
+    out = tmp_path / "out"
+    media, probe = files["png"], files["probe"]
+    if case == "nan_probe":
+        probe = bad["nan_probe"]
+    elif case == "missing":
+        media = tmp_path / "no_such_file.png"
+    else:
+        media = bad[case]
+    code = main(["relight", str(media), "--probe", str(probe), "--out", str(out), *FAST])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2
+    message = [line for line in err if line.startswith("error: ")]
+    assert len(message) == 1 and "Traceback" not in "\n".join(err)
+    assert not out.exists() or not any(out.iterdir()), "nothing may be written half-way"
+
+
+def test_module_entry_point_runs_as_a_program(files, tmp_path):
+    proc = subprocess.run([sys.executable, "-m", "relight_core", "relight", str(files["png"]), "--probe",
+                           str(tmp_path / "absent.exr"), "--out", str(tmp_path / "o"), *FAST],
+                          cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 2
+    assert proc.stderr.strip().startswith("error: ") and "Traceback" not in proc.stderr
