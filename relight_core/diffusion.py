@@ -1,0 +1,235 @@
+"""EDM maths and samplers: preconditioning, noise levels, the training loss, ODE solvers.
+
+A *denoiser* is any callable `denoiser(x, sigma, **extra) -> x0` with `sigma` a [B] tensor; the
+samplers know nothing else about the model. Wrappers compose: `EDMPrecond` turns a raw network
+into a denoiser, `guided` adds classifier-free guidance, `ConditionedDenoiser` pins the given
+(condition) clips. Every sampler ends with one clean x0 evaluation at the last σ, as the released
+Cosmos sampler does, and reports each evaluation through `callback` — previews live there.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Callable
+
+import torch
+from torch import nn
+
+Denoiser = Callable[..., torch.Tensor]
+
+
+def append_dims(x: torch.Tensor, ndim: int) -> torch.Tensor:
+    """Append trailing singleton dims so `x` broadcasts against a tensor of `ndim` dims."""
+    return x.reshape(x.shape + (1,) * (ndim - x.ndim))
+
+
+#################################################################################
+#                     Preconditioning (Karras et al. 2022, Table 1)             #
+#################################################################################
+
+def edm_scalings(sigma: torch.Tensor, sigma_data: float = 0.5):
+    """EDM (c_skip, c_out, c_in, c_noise) for noise level σ."""
+    sigma = torch.as_tensor(sigma)
+    c_skip = sigma_data ** 2 / (sigma ** 2 + sigma_data ** 2)
+    c_out = sigma * sigma_data / (sigma ** 2 + sigma_data ** 2).sqrt()
+    c_in = 1 / (sigma ** 2 + sigma_data ** 2).sqrt()
+    c_noise = 0.25 * sigma.log()
+    return c_skip, c_out, c_in, c_noise
+
+
+class EDMPrecond(nn.Module):
+    """x0 = c_skip·x + c_out·F(c_in·x, c_noise, **cond) around any network F."""
+
+    def __init__(self, net: Callable[..., torch.Tensor],
+                 sigma_data: float = 0.5):   # Expected standard deviation of the training data.
+        super().__init__()
+        self.net = net
+        self.sigma_data = sigma_data
+
+    def forward(self, x: torch.Tensor, sigma: torch.Tensor, **cond) -> torch.Tensor:
+        sigma = torch.as_tensor(sigma, dtype=torch.float32, device=x.device).expand(x.shape[0])  # (B,)
+        c_skip, c_out, c_in, c_noise = (append_dims(c, x.ndim) for c in edm_scalings(sigma, self.sigma_data))
+        f_x = self.net(c_in * x, c_noise.flatten(), **cond)
+        return c_skip * x + c_out * f_x.to(x.dtype)
+
+
+#################################################################################
+#                          Noise levels and training loss                       #
+#################################################################################
+
+def get_sigmas_karras(n: int, sigma_min: float = 0.002, sigma_max: float = 80.0, rho: float = 7.0,
+                      device=None) -> torch.Tensor:
+    """n steps ⇒ n + 1 σ from sigma_max down to sigma_min (Karras et al. 2022, eq. 5; no trailing 0)."""
+    ramp = torch.linspace(0, 1, n + 1, dtype=torch.float64, device=device)
+    inv_max, inv_min = sigma_max ** (1 / rho), sigma_min ** (1 / rho)
+    return (inv_max + ramp * (inv_min - inv_max)) ** rho
+
+
+def sample_training_sigma(batch_size: int, p_mean: float = 0.0, p_std: float = 1.0,
+                          generator: torch.Generator | None = None, device=None) -> torch.Tensor:
+    """[B] training noise levels, ln σ ~ N(p_mean, p_std²) (EDM log-normal)."""
+    noise = torch.randn(batch_size, generator=generator)
+    return (p_mean + p_std * noise).exp().to(device)
+
+
+def edm_loss(denoised: torch.Tensor, target: torch.Tensor, sigma: torch.Tensor,
+             clip_weights: tuple[float, ...] = (0.0, 1.0, 0.1),
+             condition_mask: torch.Tensor | None = None, sigma_data: float = 0.5) -> torch.Tensor:
+    """λ(σ)-weighted MSE with one weight per time-third [input | relit | albedo]; conditions skipped.
+
+    λ(σ) = (σ² + σd²)/(σ·σd)² (EDM). `condition_mask` [B,1,T,1,1] (1 = given frame) zeroes the loss
+    on condition frames, as the released model does by pasting them into its prediction. Averaged
+    over every element, like the released `loss_reduce="mean"`.
+    """
+    b, _, frames = denoised.shape[:3]
+    clips = len(clip_weights)
+    if frames % clips:
+        raise ValueError(f"{frames} latent frames do not split into {clips} clips")
+    weights = torch.tensor(clip_weights, dtype=denoised.dtype, device=denoised.device)
+    weights = weights.repeat_interleave(frames // clips).view(1, 1, frames, 1, 1)   # (1, 1, T, 1, 1)
+    if condition_mask is not None:
+        weights = weights * (1 - condition_mask.to(denoised.dtype))                  # (B, 1, T, 1, 1)
+    sigma = append_dims(torch.as_tensor(sigma, dtype=denoised.dtype, device=denoised.device).expand(b), 5)
+    lam = (sigma ** 2 + sigma_data ** 2) / (sigma * sigma_data) ** 2                 # (B, 1, 1, 1, 1)
+    return (lam * weights * (denoised - target) ** 2).mean()
+
+
+#################################################################################
+#                                    Samplers                                   #
+#################################################################################
+
+def _evaluate(denoiser, x, sigma, extra_args, callback, i, total):
+    """One denoiser call at scalar σ, reported to `callback`."""
+    sigma_b = x.new_full((x.shape[0],), float(sigma))
+    denoised = denoiser(x, sigma_b, **extra_args)
+    if callback is not None:
+        callback({"i": i, "total": total, "sigma": float(sigma), "x": x, "denoised": denoised})
+    return denoised
+
+
+@torch.no_grad()
+def sample_euler(denoiser: Denoiser, x: torch.Tensor, sigmas: torch.Tensor,
+                 extra_args: dict | None = None, callback: Callable | None = None) -> torch.Tensor:
+    """Euler on the probability-flow ODE (Karras et al. 2022, Alg. 1 without churn), then clean x0."""
+    extra_args = extra_args or {}
+    steps = len(sigmas) - 1
+    for i in range(steps):
+        sigma, sigma_next = float(sigmas[i]), float(sigmas[i + 1])
+        denoised = _evaluate(denoiser, x, sigma, extra_args, callback, i, steps + 1)
+        d = (x - denoised) / sigma                                       # dx/dσ
+        x = x + d * (sigma_next - sigma)
+    return _evaluate(denoiser, x, sigmas[-1], extra_args, callback, steps, steps + 1)
+
+
+@torch.no_grad()
+def sample_heun(denoiser: Denoiser, x: torch.Tensor, sigmas: torch.Tensor,
+                extra_args: dict | None = None, callback: Callable | None = None) -> torch.Tensor:
+    """Heun's 2nd-order method (Karras et al. 2022, Alg. 2 without churn), then clean x0."""
+    extra_args = extra_args or {}
+    steps = len(sigmas) - 1
+    total = 2 * steps + 1
+    for i in range(steps):
+        sigma, sigma_next = float(sigmas[i]), float(sigmas[i + 1])
+        denoised = _evaluate(denoiser, x, sigma, extra_args, callback, 2 * i, total)
+        d = (x - denoised) / sigma
+        x_euler = x + d * (sigma_next - sigma)
+        denoised_next = _evaluate(denoiser, x_euler, sigma_next, extra_args, callback, 2 * i + 1, total)
+        d_next = (x_euler - denoised_next) / sigma_next
+        x = x + (d + d_next) / 2 * (sigma_next - sigma)
+    return _evaluate(denoiser, x, sigmas[-1], extra_args, callback, total - 1, total)
+
+
+def _phi1(z: float) -> float:
+    return math.expm1(z) / z
+
+
+def _phi2(z: float) -> float:
+    return (_phi1(z) - 1) / z
+
+
+@torch.no_grad()
+def sample_res2ab(denoiser: Denoiser, x: torch.Tensor, sigmas: torch.Tensor,
+                  extra_args: dict | None = None, callback: Callable | None = None) -> torch.Tensor:
+    """RES second-order multistep ("2ab", Zhang et al. 2023, arXiv:2308.02157), then clean x0.
+
+    Exponential integrator in data-prediction form with λ = −ln σ and step h = λ_next − λ:
+    x_next = e^{−h}·x + h·(b1·x0 + b2·x0_prev), c2 = (λ_prev − λ)/h, b2 = φ2(−h)/c2,
+    b1 = φ1(−h) − b2. The first step, with no history, is the exact-x0 Euler step (b1 = φ1, b2 = 0).
+    """
+    extra_args = extra_args or {}
+    steps = len(sigmas) - 1
+    previous = None                                                   # (x0, σ) of the last step
+    for i in range(steps):
+        sigma, sigma_next = float(sigmas[i]), float(sigmas[i + 1])
+        denoised = _evaluate(denoiser, x, sigma, extra_args, callback, i, steps + 1)
+        h = math.log(sigma / sigma_next)
+        if previous is None:
+            x = math.exp(-h) * x + h * _phi1(-h) * denoised
+        else:
+            denoised_prev, sigma_prev = previous
+            c2 = math.log(sigma / sigma_prev) / h                        # negative: the past step
+            b2 = _phi2(-h) / c2
+            b1 = _phi1(-h) - b2
+            x = math.exp(-h) * x + h * (b1 * denoised + b2 * denoised_prev)
+        previous = (denoised, sigma)
+    return _evaluate(denoiser, x, sigmas[-1], extra_args, callback, steps, steps + 1)
+
+
+SAMPLERS: dict[str, Callable[..., torch.Tensor]] = {
+    "res2ab": sample_res2ab,
+    "euler": sample_euler,
+    "heun": sample_heun,
+}
+
+
+#################################################################################
+#                 Denoiser wrappers: condition clips and guidance               #
+#################################################################################
+
+class ConditionedDenoiser:
+    """Feeds the given clips as clean latents and pastes them into every x0 (released inference).
+
+    The released model corrupts condition frames with a fixed tiny noise (σ_aug = 0.001, one draw
+    per sampling run) and scales them by c_in(σ_aug) rather than c_in(σ): the network always sees
+    them as almost clean, whatever the current σ. That is reproduced here by handing the wrapped
+    EDM denoiser x_cond · c_in(σ_aug) / c_in(σ) on those frames. The wrapped denoiser also receives
+    `condition_mask` (the network's condition-mask channel is this same mask).
+    Sampling σ must stay above `augment_sigma` (the default σ_min 0.002 does).
+    """
+
+    def __init__(self, denoiser: Denoiser,
+                 condition_latent: torch.Tensor,    # [B,16,T,h,w] clean latents on condition frames
+                 condition_mask: torch.Tensor,      # [B,1,T,1,1], 1 on condition frames
+                 augment_sigma: float = 0.001,      # released condition_video_augment_sigma_in_inference
+                 sigma_data: float = 0.5,
+                 seed: int = 1):
+        self.denoiser = denoiser
+        self.condition_latent = condition_latent
+        self.condition_mask = condition_mask
+        self.augment_sigma = augment_sigma
+        self.sigma_data = sigma_data
+        generator = torch.Generator().manual_seed(seed)
+        noise = torch.randn(condition_latent.shape, generator=generator).to(condition_latent)
+        self.augmented = condition_latent + augment_sigma * noise      # fixed for the whole run
+
+    def __call__(self, x: torch.Tensor, sigma: torch.Tensor, **extra) -> torch.Tensor:
+        given = self.condition_mask.bool()                                           # (B, 1, T, 1, 1)
+        c_in = append_dims(edm_scalings(sigma, self.sigma_data)[2], x.ndim)           # (B, 1, 1, 1, 1)
+        c_in_augment = edm_scalings(torch.tensor(self.augment_sigma), self.sigma_data)[2]
+        x_cond = self.augmented.to(x.dtype) * (c_in_augment / c_in)
+        x0 = self.denoiser(torch.where(given, x_cond, x), sigma, condition_mask=self.condition_mask, **extra)
+        return torch.where(given, self.condition_latent.to(x0.dtype), x0)
+
+
+def guided(denoiser: Denoiser, cond_args: dict, uncond_args: dict, guidance: float) -> Denoiser:
+    """Classifier-free guidance x0 = cond + w·(cond − uncond) (released form); w = 0 runs cond only."""
+    if guidance == 0:
+        def conditional(x, sigma, **extra):
+            return denoiser(x, sigma, **cond_args, **extra)
+        return conditional
+
+    def combined(x, sigma, **extra):
+        cond = denoiser(x, sigma, **cond_args, **extra)
+        uncond = denoiser(x, sigma, **uncond_args, **extra)
+        return cond + guidance * (cond - uncond)
+    return combined
