@@ -24,7 +24,6 @@ from torch import nn
 
 LATENT_CHANNELS = 16
 NUM_CLIPS = 3                                    # [input | relit | albedo] along time
-CLIP_NAMES = ("input", "relit", "albedo")
 LIGHTING_KEYS = ("env_ldr", "env_log", "env_dir")  # released `condition_keys` order (env_dir = env_nrm)
 LIGHTING_CHANNELS = len(LIGHTING_KEYS) * (LATENT_CHANNELS + 1)  # 51: each latent + its mask
 
@@ -356,7 +355,12 @@ class JointDiT(nn.Module):
         if context is not None and not self.config.cross_attention:
             raise ValueError("this DiTConfig has cross_attention=False; pass context=None")
         _, _, frames, h, w = x.shape
+        if frames % NUM_CLIPS:
+            raise ValueError(f"{frames} latent frames do not split into {NUM_CLIPS} equal clips")
         pt, p = self.config.patch_temporal, self.config.patch_spatial
+        dtype = self.patch_embed.weight.dtype                              # a bf16-cast model takes fp32 input
+        x = x.to(dtype)
+        context = None if context is None else context.to(dtype)
         tokens = self.patch_embed(self.patchify(self.embed_inputs(x)))     # (B, L, D), L = 3t·h'·w'
         rope = self.rope(frames // NUM_CLIPS // pt, h // p, w // p, x.device)  # 2 × (L, hd)
         emb, adaln_lora = self.t_embedder(c_noise)                         # (B, D), (B, 3D)

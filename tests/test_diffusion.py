@@ -242,3 +242,28 @@ def test_conditioned_denoiser_feeds_almost_clean_condition_at_any_sigma():
         torch.testing.assert_close(seen, condition[:, :, :2] / math.sqrt(0.001 ** 2 + 0.25), atol=0.01, rtol=0)
         assert not torch.equal(x_in[:, :, :2] * c_in, condition[:, :, :2] / math.sqrt(0.001 ** 2 + 0.25))
         assert torch.equal(x_in[:, :, 2:], x[:, :, 2:])       # generated clips untouched
+
+
+def test_tiny_joint_model_samples_end_to_end():
+    from relight_core.dit import DIT_PRESETS, JointDiT, assemble_inputs
+
+    torch.manual_seed(0)
+    dit = JointDiT(DIT_PRESETS["tiny"])
+    with torch.no_grad():
+        for p in dit.parameters():
+            p.normal_(std=0.1)
+
+    def net(x_in, c_noise, lighting, condition_mask):
+        b, _, frames, h, w = x_in.shape
+        return dit(assemble_inputs(x_in, condition_mask.expand(b, 1, frames, h, w), lighting, None), c_noise)
+
+    condition, mask = _conditioned_setup()
+    lighting = torch.randn(1, 51, 2, 2, 2)
+    for guidance, calls in ((0.0, 5), (1.5, 10)):
+        counted = Counting(EDMPrecond(net))
+        den = ConditionedDenoiser(guided(counted, {"lighting": lighting}, {"lighting": lighting * 0}, guidance),
+                                  condition, mask)
+        out = sample_res2ab(den, 80.0 * torch.randn(1, 16, 6, 2, 2), get_sigmas_karras(4))
+        assert out.shape == (1, 16, 6, 2, 2) and torch.isfinite(out).all()
+        assert torch.equal(out[:, :, :2], condition[:, :, :2])
+        assert len(counted.calls) == calls

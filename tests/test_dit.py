@@ -276,3 +276,14 @@ def test_small_config_survives_json_style_round_trip():
     data["rope_extrapolation"] = list(data["rope_extrapolation"])
     rebuilt = DiTConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in data.items()})
     assert rebuilt == config
+
+
+def test_bf16_weights_accept_fp32_inputs():
+    model = randomised(JointDiT(TINY)).to(torch.bfloat16)
+    out = model(torch.randn(1, 69, 3, 4, 4), torch.tensor([0.3]))
+    assert out.dtype == torch.bfloat16 and torch.isfinite(out.float()).all()
+
+
+def test_forward_rejects_frames_that_are_not_three_clips():
+    with pytest.raises(ValueError):
+        JointDiT(TINY)(torch.randn(1, 69, 4, 4, 4), torch.tensor([0.3]))
