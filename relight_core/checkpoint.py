@@ -128,8 +128,10 @@ def _read_spec(directory: Path) -> ModelSpec:
 def load_model(model: str | Path = "default", device: str | torch.device = "cpu"):
     """Build (spec, dit, tokenizer) from a preset name or a model directory; eval mode."""
     spec, directory = resolve_model(model)
-    dit = JointDiT(spec.dit)
-    tokenizer = build_tokenizer(spec.tokenizer, directory)
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(0)  # a preset's random weights are the same in every process
+        dit = JointDiT(spec.dit)
+        tokenizer = build_tokenizer(spec.tokenizer, directory)
     if directory is not None:
         _load_state(dit, directory / DIT_FILE)
         if spec.tokenizer.get("type") != "cosmos-jit":

@@ -413,7 +413,7 @@ class Relighter:
         out = []
         for clip in (1, 2):
             latent = x0[0, :, clip * t].float()                                  # [16, h, w]
-            rgb = torch.einsum("chw,cd->dhw", torch.cat([latent, torch.ones_like(latent[:1])]), matrix)
+            rgb = torch.einsum("chw,cd->dhw", torch.cat([latent, torch.ones_like(latent[:1])]), matrix).float()
             rgb = torch.nn.functional.interpolate(rgb[None], size=(height, width), mode="bilinear",
                                                   align_corners=False)[0]
             out.append(rgb.clamp(0, 1).permute(1, 2, 0).cpu().numpy())
