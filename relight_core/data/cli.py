@@ -1,0 +1,67 @@
+"""The data engine's subcommands: `render-data` (synthetic scenes) and `autolabel` (real videos)."""
+
+from __future__ import annotations
+
+import argparse
+import os
+from pathlib import Path
+
+from relight_core.errors import InputError
+
+
+def _positive(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"'{text}' is not a whole number.") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"'{text}' must be at least 1.")
+    return value
+
+
+def add_data_commands(subparsers) -> None:
+    """Register `render-data` and `autolabel` on an argparse subparsers object (sets `func`)."""
+    p = subparsers.add_parser("render-data", help="path-trace synthetic multi-illumination training data")
+    p.add_argument("--out", required=True, type=Path, help="dataset folder (scenes go to OUT/SPLIT/)")
+    p.add_argument("--scenes", type=_positive, default=100, help="number of scenes")
+    p.add_argument("--frames", type=_positive, default=9, help="frames per scene (1 = images)")
+    p.add_argument("--size", type=_positive, default=128, help="frame side in pixels")
+    p.add_argument("--spp", type=_positive, default=64, help="samples per pixel")
+    p.add_argument("--seed", type=int, default=0, help="dataset seed: same seed, same files")
+    p.add_argument("--workers", type=_positive, default=os.cpu_count() or 1, help="parallel processes")
+    p.add_argument("--split", choices=("train", "test"), default="train",
+                   help="test uses held-out probes, meshes and textures")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=_render_data)
+
+    p = subparsers.add_parser("autolabel", help="label real single-illumination videos with the model's albedo")
+    p.add_argument("videos", type=Path, help="folder of videos (and/or images)")
+    p.add_argument("--out", required=True, type=Path, help="dataset folder (samples go to OUT/SPLIT/)")
+    p.add_argument("--split", default="real", help="split folder name")
+    p.add_argument("--model", default="default", help="model to run in albedo mode")
+    p.add_argument("--size", type=_positive, default=None, help="working resolution (default: the model's)")
+    p.add_argument("--max-frames", type=_positive, default=None, help="cut each video to this many frames")
+    p.add_argument("--steps", type=_positive, default=None, help="sampling steps (default: the model's)")
+    p.add_argument("--device", default=None, help="cpu or cuda")
+    p.set_defaults(func=_autolabel)
+
+
+def _render_data(args) -> int:
+    from relight_core.data.generate import RenderConfig, render_dataset
+
+    if args.size % 16:
+        raise InputError(f"--size {args.size} is not a multiple of 16; the tokenizer needs one (e.g. 128).")
+    config = RenderConfig(out=args.out, scenes=args.scenes, frames=args.frames, size=args.size, spp=args.spp,
+                          seed=args.seed, workers=args.workers, split=args.split)
+    print(render_dataset(config, progress=not args.quiet))
+    return 0
+
+
+def _autolabel(args) -> int:
+    from relight_core.data.autolabel import autolabel
+
+    if not args.videos.is_dir():
+        raise InputError(f"{args.videos} is not a folder; give the folder that holds the videos to label.")
+    print(autolabel(args.videos, args.out, split=args.split, model=args.model, size=args.size,
+                    max_frames=args.max_frames, steps=args.steps, device=args.device))
+    return 0

@@ -1,0 +1,121 @@
+"""Mitsuba rendering: the envmap convention, shared geometry across lights, albedo = base colour."""
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+pytest.importorskip("mitsuba")
+
+from relight_core import lighting  # noqa: E402
+from relight_core.data.files import srgb_encode  # noqa: E402
+from relight_core.data.probes import ProbeChoice  # noqa: E402
+from relight_core.data.render import SceneRenderer, init_mitsuba, to_mitsuba_bitmap  # noqa: E402
+from relight_core.data.scenes import (CameraSpec, MaterialSpec, ObjectSpec, SceneSpec,  # noqa: E402
+                                      camera_to_world, sample_scene)
+
+GREY = MaterialSpec(base_color=(0.5, 0.5, 0.5), texture=None, texture_repeat=1.0, roughness=0.8,
+                    metallic=0.0, specular=0.5, transmission=0.0)
+
+
+@pytest.fixture(scope="module", autouse=True)
+def mitsuba_single_thread():
+    init_mitsuba(threads=1)
+
+
+def _scene(objects=(), camera=None, yaw=0.0, ground=GREY) -> SceneSpec:
+    camera = camera or CameraSpec(target=(0.0, 0.5, 0.0), distance=3.0, elevation=10.0, azimuth=25.0,
+                                  fov=40.0, orbit=0.0, oscillation=0.0, cycles=1.0)
+    probe = ProbeChoice(source="test", seed=0, rotation=yaw, exposure=1.0)
+    return SceneSpec("train", 0, 0, 1, (), ground, tuple(objects), (probe, probe), 0.0, camera)
+
+
+def _sun_probe(direction: np.ndarray, h: int = 64) -> np.ndarray:
+    """A dark probe with one small bright sun towards `direction` (file convention)."""
+    probe = np.full((h, 2 * h, 3), 0.01, np.float32)
+    d = lighting.texel_directions(h, 2 * h).numpy()
+    probe[d @ direction > math.cos(math.radians(4.0))] = 2000.0
+    return probe
+
+
+def test_mitsuba_envmap_reads_our_convention_after_conversion():
+    import drjit as dr
+    import mitsuba as mi
+
+    h = 32
+    d_file = lighting.texel_directions(h, 2 * h).numpy()
+    probe = (0.5 + 0.5 * d_file) * np.array([1.0, 2.0, 3.0], np.float32)  # smooth, asymmetric
+    yaw = 70.0
+    emitter = mi.load_dict({"type": "envmap", "bitmap": mi.Bitmap(to_mitsuba_bitmap(probe)),
+                            "to_world": mi.ScalarTransform4f().rotate([0, 1, 0], yaw)})
+    rng = np.random.default_rng(0)
+    dirs = rng.normal(size=(64, 3))
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    si = dr.zeros(mi.SurfaceInteraction3f, len(dirs))
+    si.wi = mi.Vector3f(*(-dirs.T).astype(np.float32))  # the envmap looks up −wi
+    mitsuba_radiance = np.asarray(emitter.eval(si)).reshape(3, -1).T
+    # World radiance is the file seen through the inverse yaw: file(R_y(−yaw)·d).
+    ours = lighting.sample_probe(torch.from_numpy(probe), torch.from_numpy(dirs @ lighting.yaw_matrix(-yaw).numpy().T))
+    np.testing.assert_allclose(mitsuba_radiance, ours.numpy(), rtol=0.05, atol=0.05)  # bilinear differences near the poles
+    # Without the conversion Mitsuba would be 180° of yaw away: the check above must be able to fail.
+    emitter_raw = mi.load_dict({"type": "envmap", "bitmap": mi.Bitmap(probe),
+                                "to_world": mi.ScalarTransform4f().rotate([0, 1, 0], yaw)})
+    raw = np.asarray(emitter_raw.eval(si)).reshape(3, -1).T
+    assert np.abs(raw - ours.numpy()).max() > 0.5
+
+
+def test_sun_lights_the_facing_side_and_encoding_puts_it_at_env_dir():
+    size = 48
+    sphere = ObjectSpec("sphere", 0, (0.5, 0.5, 0.5), (0.0, 0.0), 0.0, 0.0, (0.0, 0.0), 0.5, GREY)
+    yaw = 40.0
+    spec = _scene([sphere], yaw=yaw)
+    c2w = camera_to_world(spec, 0)
+    right, up = c2w[:, 0], c2w[:, 1]
+    sun_world = right * math.cos(math.radians(35)) + up * math.sin(math.radians(35))  # upper right of view
+    sun_world /= np.linalg.norm(sun_world)
+    sun_file = lighting.yaw_matrix(-yaw).numpy() @ sun_world  # the envmap's to_world is R_y(yaw)
+    probe = _sun_probe(sun_file)
+    with SceneRenderer(spec, size, spp=16, probes=[probe, probe]) as renderer:
+        frame = renderer.render(0, 0, seed=1)
+        panorama = renderer.camera_probe(0, 0)
+
+    # The sphere (centre of the image, radius ~8 px) is lit on its right, not its left.
+    luminance = frame.rgb.mean(axis=-1)
+    rows = slice(size // 2 - 8, size // 2 - 1)  # upper half of the sphere: only sphere and sky
+    right_side = luminance[rows, size // 2 + 2: size // 2 + 8].mean()
+    left_side = luminance[rows, size // 2 - 8: size // 2 - 2].mean()
+    assert right_side > 3 * left_side
+
+    # The brightest panorama pixel's env_dir, taken back to the world, points at the sun.
+    encoded = lighting.encode_lighting(torch.from_numpy(panorama)[None])
+    i, j = np.unravel_index(np.argmax(panorama.sum(-1)), panorama.shape[:2])
+    env_dir = encoded["env_dir"][0, i, j].numpy()
+    angle = math.degrees(math.acos(np.clip(np.dot(c2w @ env_dir, sun_world), -1, 1)))
+    assert angle < 10.0, angle
+    assert env_dir[0] > 0.5 and env_dir[1] > 0.3  # camera frame: to the right and above
+
+
+def test_two_lights_share_geometry_and_albedo_is_independent_of_light():
+    spec = sample_scene(3, "train", 1, frames=2)
+    with SceneRenderer(spec, 32, spp=4) as renderer:
+        a, b = renderer.render(1, 0, seed=9), renderer.render(1, 1, seed=9)
+    np.testing.assert_array_equal(a.mask, b.mask)
+    np.testing.assert_array_equal(a.albedo, b.albedo)
+    assert a.mask.mean() > 0.2
+    assert np.abs(a.rgb - b.rgb).mean() > 1e-3  # the lights really differ
+
+
+def test_albedo_equals_base_colour_on_a_flat_unshadowed_patch():
+    base = (0.8, 0.35, 0.1)
+    ground = MaterialSpec(base_color=base, texture=None, texture_repeat=1.0, roughness=0.5, metallic=0.0,
+                          specular=0.5, transmission=0.0)
+    camera = CameraSpec(target=(0.0, 0.0, 0.0), distance=2.0, elevation=70.0, azimuth=0.0, fov=30.0,
+                        orbit=0.0, oscillation=0.0, cycles=1.0)
+    spec = _scene([], camera=camera, ground=ground)
+    probe = np.ones((16, 32, 3), np.float32)
+    with SceneRenderer(spec, 32, spp=4, probes=[probe, probe]) as renderer:
+        frame = renderer.render(0, 0, seed=0)
+    patch = srgb_encode(frame.albedo[8:24, 8:24])
+    np.testing.assert_allclose(patch, np.broadcast_to(base, patch.shape), atol=1.5 / 255)
+    assert frame.mask[8:24, 8:24].min() == 1.0
