@@ -95,6 +95,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--quick", action="store_true", help="tiny preset only, fewer repeats")
     p.add_argument("--out", type=Path, default=None, help="also write the numbers as JSON here")
 
+    p = sub.add_parser("import-released", help="make a model folder from the released UniRelight files")
+    p.add_argument("--checkpoint", required=True, type=Path, help="UniRelight/model.pt")
+    p.add_argument("--tokenizer", required=True, type=Path, help="the Cosmos-Tokenize1-CV8x8x8-720p folder")
+    p.add_argument("--out", required=True, type=Path, help="model folder to write (then use --model OUT)")
+
     try:
         from relight_core.data.cli import add_data_commands
     except ImportError:  # the data engine's optional renderer dependencies are missing
@@ -110,6 +115,10 @@ def main(argv: list[str] | None = None) -> int:
         if args.command == "bench":
             from relight_core.bench import run_bench
             run_bench(quick=args.quick, out=args.out)
+            return 0
+        if args.command == "import-released":
+            from relight_core.released import import_released
+            print(import_released(args.checkpoint, args.tokenizer, args.out))
             return 0
         if args.command in ("relight", "augment", "albedo", "render"):
             return _run_media_command(args)
