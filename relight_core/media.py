@@ -105,6 +105,8 @@ def _kind(path: str) -> str:
     try:
         with Image.open(path):
             return "image"
+    except Image.DecompressionBombError:
+        return "image"  # refused with a clear message by the image reader
     except (UnidentifiedImageError, OSError):
         pass
     try:
@@ -123,10 +125,10 @@ def _kind(path: str) -> str:
     )
 
 
-def _target_size(height: int, width: int, size: int) -> tuple[int, int]:
-    """(H, W) with the long side scaled to `size` and each side rounded to a multiple of 16 (≥ 16)."""
+def _target_size(height: int, width: int, size: int, multiple: int = SIZE_MULTIPLE) -> tuple[int, int]:
+    """(H, W) with the long side scaled to `size` and each side rounded to a multiple (≥ multiple)."""
     scale = size / max(height, width)
-    return tuple(max(SIZE_MULTIPLE, round(side * scale / SIZE_MULTIPLE) * SIZE_MULTIPLE) for side in (height, width))
+    return tuple(max(multiple, round(side * scale / multiple) * multiple) for side in (height, width))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -134,14 +136,24 @@ def _target_size(height: int, width: int, size: int) -> tuple[int, int]:
 # ---------------------------------------------------------------------------------------------
 
 
-def _srgb(x: np.ndarray) -> np.ndarray:
+def linear_to_srgb(x: np.ndarray) -> np.ndarray:
+    """Piecewise sRGB encoding of linear values (same curve as the lighting encodings)."""
+    x = np.asarray(x, dtype=np.float32)
     return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.maximum(x, 0.0031308) ** (1 / 2.4) - 0.055)
+
+
+def srgb_to_linear(x: np.ndarray) -> np.ndarray:
+    """Inverse of `linear_to_srgb`: display values in [0, 1] back to linear light."""
+    x = np.asarray(x, dtype=np.float32)
+    return np.where(x <= 0.04045, x / 12.92, ((np.maximum(x, 0.04045) + 0.055) / 1.055) ** 2.4)
 
 
 def _read_linear(path: str) -> np.ndarray:
     """EXR (OpenEXR) or Radiance (OpenCV) -> linear float32 [H, W, 3]."""
+    with open(path, "rb") as f:
+        head = f.read(4096)
     try:
-        if open(path, "rb").read(4) == _EXR_MAGIC:
+        if head[:4] == _EXR_MAGIC:
             with OpenEXR.File(path, header_only=True) as f:
                 (x0, y0), (x1, y1) = f.header()["dataWindow"]
             _check_side(path, int(x1 - x0 + 1), int(y1 - y0 + 1))
@@ -152,7 +164,7 @@ def _read_linear(path: str) -> np.ndarray:
                     raise InputError(f"{_name(path)} has no RGB or Y channels; export it as a plain RGB OpenEXR.")
                 pixels = np.array(channels[name].pixels, dtype=np.float32)
         else:
-            match = _RADIANCE_SIZE.search(open(path, "rb").read(4096))
+            match = _RADIANCE_SIZE.search(head)
             if match is None:
                 raise InputError(f"{_name(path)} has no Radiance resolution line; re-export it as .hdr or .exr.")
             sides = {match.group(1): int(match.group(2)), match.group(3): int(match.group(4))}
@@ -227,7 +239,7 @@ def load_image(path) -> np.ndarray:
     if kind == "video":
         raise InputError(f"{_name(path)} is a video, not an image; load it with load_media or load_video.")
     if kind == "linear":
-        rgb = _srgb(np.clip(np.nan_to_num(_read_linear(path), nan=0.0, posinf=1.0, neginf=0.0), 0.0, 1.0))
+        rgb = linear_to_srgb(np.clip(np.nan_to_num(_read_linear(path), nan=0.0, posinf=1.0, neginf=0.0), 0.0, 1.0))
     else:
         rgb = _read_pillow(path)
     return np.clip(rgb, 0.0, 1.0).astype(np.float32)[None]
@@ -349,10 +361,10 @@ def load_media(
     return Media(frames=frames, fps=None, is_video=False)
 
 
-def resize_frames(frames: np.ndarray, size: int) -> np.ndarray:
-    """Long side to `size`, each side rounded to a multiple of 16 (≥ 16), antialiased bilinear."""
+def resize_frames(frames: np.ndarray, size: int, multiple: int = SIZE_MULTIPLE) -> np.ndarray:
+    """Long side to `size`, each side rounded to a multiple of `multiple` (≥ it), antialiased bilinear."""
     _, h, w, _ = frames.shape
-    H, W = _target_size(h, w, size)
+    H, W = _target_size(h, w, size, multiple)
     return _resize(np.asarray(frames, dtype=np.float32), H, W)
 
 

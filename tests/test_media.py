@@ -2,6 +2,8 @@
 
 import io
 import os
+import struct
+import zlib
 from fractions import Fraction
 
 import av
@@ -17,10 +19,12 @@ from relight_core.media import (
     load_media,
     load_video,
     probe_video,
+    linear_to_srgb,
     resize_frames,
     save_exr,
     save_image,
     save_video,
+    srgb_to_linear,
 )
 
 
@@ -230,6 +234,18 @@ def test_resize_rounding(shape, size, expected):
     assert resize_frames(frames, size).shape == (2, *expected, 3)
 
 
+def test_resize_other_multiple():
+    frames = np.zeros((1, 100, 300, 3), np.float32)
+    assert resize_frames(frames, 256, multiple=32).shape == (1, 96, 256, 3)  # 85.3 → 96
+
+
+def test_srgb_curves():
+    x = np.array([0.0, 0.002, 0.5, 1.0], np.float32)
+    encoded = linear_to_srgb(x)
+    assert encoded[1] == pytest.approx(12.92 * 0.002) and encoded[2] == pytest.approx(1.055 * 0.5 ** (1 / 2.4) - 0.055)
+    assert np.allclose(srgb_to_linear(encoded), x, atol=1e-6)
+
+
 def test_resize_is_antialiased():
     checker = (np.indices((64, 64)).sum(0) % 2).astype(np.float32)  # 1-pixel checkerboard
     small = resize_frames(np.repeat(checker[None, ..., None], 3, -1), 16)
@@ -249,6 +265,13 @@ def bad_files(tmp_path) -> dict[str, str]:
     (tmp_path / "text.png").write_text("this is not an image")
     (tmp_path / "empty.mp4").write_bytes(b"")
     Image.new("L", (9000, 2)).save(tmp_path / "wide.png")  # tiny file, absurd side
+    # A PNG header announcing 20000×20000 pixels: Pillow's bomb guard trips before any decoding.
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+
+    ihdr = struct.pack(">IIBBBBB", 20000, 20000, 8, 0, 0, 0, 0)
+    bomb = b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IDAT", zlib.compress(b"\0" * 64)) + chunk(b"IEND", b"")
+    (tmp_path / "bomb.png").write_bytes(bomb)
     with av.open(str(tmp_path / "zero.mp4"), "w") as out:  # an mp4 container with no frames at all
         stream = out.add_stream("libx264", rate=24)
         stream.width, stream.height, stream.pix_fmt = 16, 16, "yuv420p"
@@ -265,6 +288,7 @@ def bad_files(tmp_path) -> dict[str, str]:
         "text.png": "not a supported",
         "empty.mp4": "empty",
         "wide.png": "9000×2",
+        "bomb.png": "too large",
         "zero.mp4": "no video stream",
         "audio_only.mp4": "no video stream",
         "missing.mp4": "does not exist",

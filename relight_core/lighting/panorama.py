@@ -91,6 +91,7 @@ def yaw_matrix(degrees: float) -> torch.Tensor:
 
 def _sample_uv(probe: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
     """Bilinear look-up of probe [h, w, 3] at uv [..., 2] -> [..., 3]; u wraps, v clamps at the poles."""
+    probe = torch.as_tensor(probe, dtype=torch.float32)
     h, w, _ = probe.shape
     # Pad one column each side so bilinear taps across the u = 0/1 seam read the far edge.
     padded = torch.cat((probe[:, -1:], probe, probe[:, :1]), dim=1)  # [h, w+2, 3]
@@ -98,7 +99,7 @@ def _sample_uv(probe: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
     y_pix = uv[..., 1] * h - 0.5
     grid = torch.stack(((2 * x_pix + 1) / (w + 2) - 1, (2 * y_pix + 1) / h - 1), dim=-1)
     grid = grid.float().reshape(1, 1, -1, 2)
-    image = padded.float().permute(2, 0, 1).unsqueeze(0).contiguous()  # [1, 3, h, w+2]
+    image = padded.permute(2, 0, 1).unsqueeze(0).contiguous()  # [1, 3, h, w+2]
     out = F.grid_sample(image, grid, mode="bilinear", padding_mode="border", align_corners=False)
     return out[0, :, 0].T.reshape(*uv.shape[:-1], 3)
 
