@@ -1,0 +1,55 @@
+"""UniRelight Studio: `python app.py` serves the relighting app on localhost and opens a browser.
+
+    python app.py                       # local desktop launch on the shipped default model
+    python app.py --share               # also a public link for reviewers (needs internet)
+    python app.py --auth USER:PASS      # ask for a login
+    python app.py --model DIR           # a local model folder, e.g. the released weights
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from ui.server import ServerOptions, start
+
+
+def parse_args(argv: list[str] | None = None) -> ServerOptions:
+    """The command line as ServerOptions."""
+    parser = argparse.ArgumentParser(description="UniRelight Studio: relight images and videos in a browser.")
+    parser.add_argument("--host", default="127.0.0.1", help="address to listen on (0.0.0.0 for the LAN)")
+    parser.add_argument("--port", type=int, default=None, help="port (default: first free from 7860)")
+    parser.add_argument("--model", default="default",
+                        help="'default' (shipped model), a preset name such as 'tiny', or a model folder")
+    parser.add_argument("--share", action="store_true", help="create a public share link for reviewers")
+    parser.add_argument("--share-timeout", type=float, default=5.0,
+                        help="seconds to try reaching the share server before serving locally only")
+    parser.add_argument("--auth", default=None, metavar="USER:PASS", help="protect the app with a login")
+    parser.add_argument("--no-browser", action="store_true", help="do not open a browser tab")
+    parser.add_argument("--max-upload-mb", type=int, default=500, help="largest accepted upload, in MB")
+    parser.add_argument("--queue-size", type=int, default=16, help="jobs that may wait in line")
+    parser.add_argument("--concurrency", type=int, default=1, help="model runs at the same time")
+    parser.add_argument("--temp-dir", type=Path, default=None,
+                        help="folder for uploads and results (default: a temporary one removed at exit)")
+    args = parser.parse_args(argv)
+    auth = None
+    if args.auth is not None:
+        user, sep, password = args.auth.partition(":")
+        if not sep or not user or not password:
+            parser.error("--auth takes USER:PASS, for example --auth alice:s3cret")
+        auth = (user, password)
+    return ServerOptions(host=args.host, port=args.port, model=args.model, share=args.share,
+                         share_timeout_s=args.share_timeout, auth=auth, inbrowser=not args.no_browser,
+                         max_upload_mb=args.max_upload_mb, queue_size=args.queue_size,
+                         concurrency=args.concurrency, temp_dir=args.temp_dir)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Serve until interrupted."""
+    start(parse_args(argv), block=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,179 @@
+"""The studio through its HTTP API (gradio_client), against a real server on a free localhost port."""
+
+from __future__ import annotations
+
+import socket
+from pathlib import Path
+
+import numpy as np
+import OpenEXR
+import pytest
+from gradio_client import Client, handle_file
+from PIL import Image
+
+from relight_core import media
+
+REPO = Path(__file__).resolve().parent.parent
+UPLOAD_LIMIT_MB = 1
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def start_studio(tmp: Path, **overrides):
+    """Launch the studio in-process on the tiny model; returns (demo, local_url, share_url)."""
+    from ui.server import ServerOptions, start
+
+    options = ServerOptions(port=free_port(), model="tiny", inbrowser=False, temp_dir=tmp / "studio",
+                            max_upload_mb=UPLOAD_LIMIT_MB, examples_dir=tmp / "no-examples")
+    options = ServerOptions(**{**options.__dict__, **overrides})
+    return start(options, block=False)
+
+
+def scene_image(path: Path, size=(96, 64)) -> Path:
+    """A small real picture: smooth gradients and a few shapes, saved as PNG."""
+    w, h = size
+    yy, xx = np.mgrid[0:h, 0:w] / np.array([h, w])[:, None, None]
+    image = np.stack([0.2 + 0.6 * xx, 0.3 + 0.5 * yy, 0.5 + 0.3 * xx * yy], axis=-1)
+    image[(xx - 0.3) ** 2 + (yy - 0.5) ** 2 < 0.04] = (0.9, 0.2, 0.1)
+    image[10:30, 50:80] = (0.1, 0.4, 0.9)
+    media.save_image(path, image.astype(np.float32))
+    return path
+
+
+def relight_args(image: Path, **overrides) -> dict:
+    """Every input of the /relight endpoint, with the defaults a user gets."""
+    args = dict(path=handle_file(str(image)), mode="Relight", probe_name="studio", probe_upload=None,
+                rotation=120.0, exposure=0.0, rotate_light=False, sweep_start=0, sweep_end=360, num_seeds=1,
+                frame_start=0, frame_end=0, size=64, steps=4, sampler="euler", seed=3, guidance=0.0,
+                model="tiny")
+    args.update(overrides)
+    return args
+
+
+@pytest.fixture(scope="module")
+def studio(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("api")
+    demo, url, _ = start_studio(tmp)
+    client = Client(url, verbose=False)
+    yield client, tmp
+    client.close()
+    demo.close()
+
+
+def plain(value):
+    """A streamed output as its value; skipped or cleared outputs come back as None."""
+    if isinstance(value, dict) and value.get("__type__") == "update":
+        return value.get("value")
+    return value
+
+
+def run_job(client: Client, **args) -> list[tuple]:
+    """Submit a relight job and collect every streamed update."""
+    job = client.submit(**args, api_name="/relight")
+    updates = [tuple(plain(v) for v in update) for update in job]
+    job.result()  # re-raises a server-side error
+    return updates
+
+
+def test_relight_streams_previews_then_final_files(studio):
+    client, tmp = studio
+    updates = run_job(client, **relight_args(scene_image(tmp / "scene.png")))
+    # Output order: status, input, relit, albedo, input video, relit video, albedo video, compare,
+    # seeds, downloads.
+    previews = [u for u in updates if u[2] and "preview" in Path(u[2]).name]
+    assert len(previews) >= 3, [u[0] for u in updates]
+    assert all(u[3] and "preview" in Path(u[3]).name for u in previews)
+    final = updates[-1]
+    assert "Done" in final[0]
+    downloads = [Path(p) for p in final[9]]
+    assert sorted(p.suffix for p in downloads) == [".exr", ".png", ".png"]
+    for path in downloads:
+        assert path.is_file()
+        if path.suffix == ".png":
+            assert Image.open(path).size == (64, 48)  # long side 64, both sides multiples of 16
+        else:
+            with OpenEXR.File(str(path)) as exr:
+                pixels = next(iter(exr.channels().values())).pixels
+            assert pixels.shape[:2] == (48, 64) and np.isfinite(pixels).all()
+    relit = np.asarray(Image.open(final[2]))
+    assert relit.shape == (48, 64, 3)
+    before, after = final[7]
+    assert Path(before).is_file() and Path(after).is_file()
+
+
+def test_same_seed_reproduces_a_random_illumination(studio):
+    client, tmp = studio
+    image = scene_image(tmp / "seeds.png")
+    batch = run_job(client, **relight_args(image, mode="Random illumination", num_seeds=2, seed=7))
+    gallery = batch[-1][8]  # [{"image": path, "caption": "seed N"}, ...]
+    assert [item["caption"] for item in gallery] == ["seed 7", "seed 8"]
+    again = run_job(client, **relight_args(image, mode="Random illumination", num_seeds=1, seed=8))
+    first, second = (np.asarray(Image.open(item["image"])) for item in gallery)
+    assert np.abs(first.astype(int) - second.astype(int)).mean() > 1  # different seeds differ
+    np.testing.assert_array_equal(second, np.asarray(Image.open(again[-1][8][0]["image"])))
+
+
+def test_light_preview_endpoint_changes_with_rotation(studio):
+    client, _ = studio
+    a = client.predict("studio", None, 0.0, 0.0, "Relight", api_name="/light_preview")
+    b = client.predict("studio", None, 90.0, 0.0, "Relight", api_name="/light_preview")
+    assert np.abs(np.asarray(Image.open(a), np.int16) - np.asarray(Image.open(b), np.int16)).mean() > 2
+
+
+def write_bad_inputs(tmp: Path) -> dict[str, Path]:
+    corrupt = tmp / "corrupt.png"
+    corrupt.write_bytes(b"\x89PNG\r\n\x1a\n" + b"not really a picture" * 20)
+    fake_video = tmp / "fake.mp4"
+    fake_video.write_bytes(b"this is a text file, not a video\n" * 50)
+    nan_probe = tmp / "nan.exr"
+    pixels = np.full((16, 32, 3), np.nan, dtype=np.float32)
+    OpenEXR.File({"type": OpenEXR.scanlineimage}, {"RGB": pixels}).write(str(nan_probe))
+    big = tmp / "big.png"
+    big.write_bytes(b"\0" * (UPLOAD_LIMIT_MB * 1024 * 1024 + 1))
+    return {"corrupt": corrupt, "fake_video": fake_video, "nan_probe": nan_probe, "big": big}
+
+
+def test_bad_inputs_give_readable_errors_and_the_app_keeps_serving(studio):
+    client, tmp = studio
+    bad = write_bad_inputs(tmp)
+    good = scene_image(tmp / "good.png")
+    cases = [
+        (relight_args(bad["corrupt"]), "corrupt.png"),
+        (relight_args(bad["fake_video"]), "fake.mp4"),
+        (relight_args(good, probe_upload=handle_file(str(bad["nan_probe"]))), "nan.exr"),
+    ]
+    for args, name in cases:
+        with pytest.raises(Exception) as error:
+            run_job(client, **args)
+        message = str(error.value)
+        assert name in message and len(message) < 400, message
+        # ...and the next good request is served normally.
+        assert "Done" in run_job(client, **relight_args(good))[-1][0]
+    with pytest.raises(Exception) as error:
+        run_job(client, **relight_args(bad["big"]))
+    assert "size" in str(error.value).lower()
+    assert "Done" in run_job(client, **relight_args(good))[-1][0]
+
+
+def test_inspect_input_reports_corrupt_files(studio):
+    client, tmp = studio
+    bad = write_bad_inputs(tmp)
+    with pytest.raises(Exception, match="fake.mp4"):
+        client.predict(handle_file(str(bad["fake_video"])), api_name="/inspect_input")
+
+
+def test_share_falls_back_to_local_when_the_tunnel_is_unreachable(tmp_path, capsys, monkeypatch):
+    # Point the share server at a closed local port so the check fails fast, online or not.
+    monkeypatch.setattr("gradio.networking.GRADIO_API_SERVER", f"http://127.0.0.1:{free_port()}/v1")
+    demo, url, share_url = start_studio(tmp_path, share=True, share_timeout_s=1.0)
+    try:
+        assert share_url is None
+        assert "keeps serving locally" in capsys.readouterr().out
+        assert Client(url, verbose=False).predict("studio", None, 10.0, 0.0, "Relight",
+                                                  api_name="/light_preview")
+    finally:
+        demo.close()

@@ -1,0 +1,1 @@
+"""The Gradio studio: layout (`layout`) and event handlers (`studio`); no tensor maths here."""

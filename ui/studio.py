@@ -1,0 +1,395 @@
+"""Event handlers of the studio: they validate, call relight_core, and turn results into files.
+
+No tensor maths lives here: frames are loaded, resized, relit, previewed and saved by
+relight_core; the handlers only pick files, call the core and report errors in one sentence.
+"""
+
+from __future__ import annotations
+
+import shutil
+import threading
+import uuid
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import gradio as gr
+import numpy as np
+
+from relight_core import media, preview
+from relight_core.errors import InputError
+from relight_core.pipeline import ChunkDone, Finished, Progress, Relighter, RelightRequest
+from ui.probes import ProbeLibrary
+
+VIDEO_SUFFIXES = (".mp4", ".mov", ".webm", ".mkv", ".avi", ".m4v")
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".webp", ".exr", ".hdr", ".bmp", ".tif", ".tiff")
+
+MODES = {  # label shown in the UI → pipeline mode
+    "Relight": "relight",
+    "Albedo only": "albedo",
+    "Render from albedo": "render",
+    "Random illumination": "random",
+}
+RANDOM_MODE = "Random illumination"
+CLEAR = gr.update(value=None)  # a RunOutputs field set to this empties the component
+
+
+@dataclass(frozen=True)
+class StudioConfig:
+    """What the studio serves and where it keeps its files."""
+
+    model: str = "default"              # "default", a preset name or a model directory
+    envmaps_dir: Path = Path("envmaps")  # bundled probes
+    work_dir: Path = Path("studio-work")  # per-job outputs, deleted once Gradio has copied them
+    max_upload_mb: int = 500            # larger uploads are refused with a message
+    max_seeds: int = 8                  # random illumination: at most this many seeds per run
+
+
+@dataclass(frozen=True)
+class RunOutputs:
+    """What one update of a run sets: a file path, CLEAR, or None to leave the component as it is."""
+
+    status: str | None = None
+    input_image: object = None
+    relit_image: object = None
+    albedo_image: object = None
+    input_video: object = None
+    relit_video: object = None
+    albedo_video: object = None
+    compare: object = None                    # (before, after) image paths
+    seeds: object = None                      # [(image path, "seed N"), ...]
+    downloads: object = None                  # [file path, ...]
+
+    def values(self) -> tuple:
+        """The update as a tuple in the layout's output order, gr.skip() for unchanged fields."""
+        return tuple(gr.skip() if v is None else v for v in (
+            self.status, self.input_image, self.relit_image, self.albedo_image, self.input_video,
+            self.relit_video, self.albedo_video, self.compare, self.seeds, self.downloads))
+
+
+def status_html(fraction: float, text: str, state: str = "running") -> str:
+    """The progress bar and its one-line caption (fixed height, so nothing moves as it updates)."""
+    percent = max(0.0, min(1.0, fraction)) * 100
+    return (f'<div class="run-status {state}"><div class="run-bar"><div style="width:{percent:.1f}%"></div>'
+            f'</div><div class="run-text">{text}</div></div>')
+
+
+def _fail(exc: Exception) -> gr.Error:
+    """A user-facing error toast carrying the core's one-sentence message."""
+    return gr.Error(str(exc), print_exception=False)
+
+
+class Studio:
+    """The studio's state shared by all sessions: the model, the probe library, stop flags."""
+
+    def __init__(self, config: StudioConfig):
+        self.config = config
+        self.work_dir = Path(config.work_dir)
+        self.work_dir.mkdir(parents=True, exist_ok=True)
+        self.probes = ProbeLibrary(config.envmaps_dir, self.work_dir / "thumbnails")
+        self._relighters: dict[str, Relighter] = {}
+        self._model_lock = threading.Lock()
+        self._stops: dict[str, threading.Event] = {}
+        self.relighter(config.model)  # load at start: the first request should not wait for it
+
+    # -- model ----------------------------------------------------------------------------------
+
+    def relighter(self, model: str | None = None) -> Relighter:
+        """The loaded model for `model` (one kept in memory at a time)."""
+        model = (model or "").strip() or self.config.model
+        with self._model_lock:
+            if model not in self._relighters:
+                self._relighters.clear()  # free the previous model before loading the next
+                self._relighters[model] = Relighter.load(model)
+            return self._relighters[model]
+
+    def model_notice(self) -> str:
+        """A visible line about the model in use (loud when its weights are untrained)."""
+        spec = self.relighter().spec
+        if not spec.trained:
+            return (f"⚠️ Model **{spec.name}** has untrained (random) weights: results look like noise. "
+                    "Pass `--model DIR` with trained weights for real relighting.")
+        return f"Model: **{spec.name}**"
+
+    # -- input ----------------------------------------------------------------------------------
+
+    def check_upload(self, path: str | None) -> None:
+        """Refuse files over the upload limit with a message (the web upload limit may be off)."""
+        if path and Path(path).stat().st_size > self.config.max_upload_mb * 1024 * 1024:
+            raise gr.Error(f"The file {Path(path).name} is larger than {self.config.max_upload_mb} MB; "
+                           "upload a smaller or shorter file.", print_exception=False)
+
+    def input_changed(self, path: str | None):
+        """Show the upload at once; for videos, reveal the frame range set to the first chunk."""
+        hidden = gr.update(visible=False)
+        if not path:
+            return gr.update(value=None, visible=True), gr.update(value=None, visible=False), hidden, \
+                gr.update(), gr.update(), ""
+        self.check_upload(path)
+        try:
+            if Path(path).suffix.lower() in VIDEO_SUFFIXES:
+                info = media.probe_video(path)
+                last = info.num_frames - 1
+                default_end = min(last, self.relighter().spec.chunk_frames - 1)
+                text = (f"Video: {info.width}×{info.height}, {info.num_frames} frames at {info.fps:.3g} fps"
+                        f"{', with audio' if info.has_audio else ''}.")
+                return (gr.update(value=None, visible=False), gr.update(value=path, visible=True),
+                        gr.update(visible=True),
+                        gr.update(maximum=last, value=0), gr.update(maximum=last, value=default_end), text)
+            loaded = media.load_media(path)
+        except InputError as exc:
+            raise _fail(exc) from exc
+        shown = self._job_dir("inputs") / "input.png"
+        media.save_image(shown, loaded.frames[0])
+        height, width = loaded.frames.shape[1:3]
+        return (gr.update(value=str(shown), visible=True), gr.update(value=None, visible=False), hidden,
+                gr.update(), gr.update(), f"Image: {width}×{height}.")
+
+    def estimate(self, path: str | None, mode: str, frame_start: float, frame_end: float, size: int,
+                 steps: float, num_seeds: float, model: str) -> str:
+        """The time estimate for the current choice, shown before running."""
+        if not path:
+            return "Upload an image or a video to see the time estimate."
+        try:
+            frames = self._load_media(path, frame_start, frame_start, size).frames  # one frame: the size
+            count = self._frame_count(path, frame_start, frame_end)
+            relighter = self.relighter(model)
+        except (InputError, OSError):
+            return ""
+        height, width = frames.shape[1:3]
+        runs = int(num_seeds) if mode == RANDOM_MODE else 1
+        seconds = runs * relighter.estimate_seconds(count, height, width, int(steps))
+        what = f"{count} frames" if count > 1 else "the image"
+        return f"About **{_duration(seconds)}** for {what} at {width}×{height}, {int(steps)} steps" + \
+            (f", {runs} seeds." if runs > 1 else ".")
+
+    # -- probes ---------------------------------------------------------------------------------
+
+    def probe_picked(self, evt: gr.SelectData):
+        """A gallery click selects that bundled probe and drops any uploaded one."""
+        return self.probes.entries[evt.index].name, None
+
+    def probe_path(self, name: str | None, upload: str | None) -> Path | None:
+        """The probe file to use: the upload if any, else the bundled probe by name."""
+        if upload:
+            self.check_upload(upload)
+            return Path(upload)
+        if name:
+            try:
+                return self.probes.path_of(name)
+            except KeyError:
+                raise gr.Error(f"There is no bundled probe called '{name}'; pick one from the gallery.",
+                               print_exception=False) from None
+        return None
+
+    def light_preview(self, name: str | None, upload: str | None, rotation: float, exposure: float,
+                      mode: str):
+        """The sphere + panorama preview of the probe at this rotation and exposure."""
+        if mode in ("Albedo only", RANDOM_MODE):
+            return None
+        path = self.probe_path(name, upload)
+        if path is None:
+            return None
+        try:
+            probe = self.probes.load(path)
+        except InputError as exc:
+            raise _fail(exc) from exc
+        return preview.render_preview(probe, float(rotation), intensity=2.0 ** float(exposure))
+
+    # -- run ------------------------------------------------------------------------------------
+
+    def run(self, path: str | None, mode: str, probe_name: str | None, probe_upload: str | None,
+            rotation: float, exposure: float, rotate_light: bool, sweep_start: float, sweep_end: float,
+            num_seeds: float, frame_start: float, frame_end: float, size: int, steps: float, sampler: str,
+            seed: float, guidance: float, model: str, request: gr.Request) -> Iterator[tuple]:
+        """Relight the input; stream progress and previews, then the final files."""
+        if not path:
+            raise gr.Error("Upload an image or a video first.", print_exception=False)
+        self.check_upload(path)
+        stop = self._stops.setdefault(request.session_hash or "", threading.Event())
+        stop.clear()
+        job = self._job_dir("jobs")
+        try:
+            yield from self._run(job, stop, path, MODES.get(mode, "relight"), probe_name, probe_upload,
+                                 float(rotation), 2.0 ** float(exposure), bool(rotate_light),
+                                 (float(sweep_start), float(sweep_end)), int(num_seeds), frame_start,
+                                 frame_end, int(size), int(steps), sampler, int(seed), float(guidance), model)
+        except InputError as exc:
+            raise _fail(exc) from exc
+        finally:
+            # Gradio has copied every yielded file into its own cache by now.
+            shutil.rmtree(job, ignore_errors=True)
+
+    def stop(self, request: gr.Request) -> str:
+        """Ask this session's run to stop at its next step."""
+        self._stops.setdefault(request.session_hash or "", threading.Event()).set()
+        return status_html(0.0, "Stopped.", "stopped")
+
+    def _run(self, job: Path, stop: threading.Event, path, mode, probe_name, probe_upload, rotation,
+             intensity, rotate_light, sweep, num_seeds, frame_start, frame_end, size, steps, sampler, seed,
+             guidance, model) -> Iterator[tuple]:
+        relighter = self.relighter(model)
+        loaded = self._load_media(path, frame_start, frame_end, size)
+        frames = loaded.frames
+        probe = None
+        if mode in ("relight", "render"):
+            probe_file = self.probe_path(probe_name, probe_upload)
+            if probe_file is None:
+                raise InputError("Pick a light probe from the gallery or upload one, "
+                                 "or choose 'Random illumination'.")
+            probe = self.probes.load(probe_file)
+        seeds = [seed + i for i in range(max(1, min(num_seeds, self.config.max_seeds)))] \
+            if mode == "random" else [seed]
+        is_video = loaded.is_video
+
+        audio = (loaded.audio_path, loaded.audio_start)
+        input_file = self._save(job, "input", frames, loaded.fps, audio, is_video)
+        yield RunOutputs(status=status_html(0.0, "Starting…"),
+                         input_image=None if is_video else input_file,
+                         input_video=input_file if is_video else None,
+                         relit_image=CLEAR, albedo_image=CLEAR, relit_video=CLEAR, albedo_video=CLEAR,
+                         compare=CLEAR, downloads=CLEAR, seeds=[] if mode == "random" else None).values()
+
+        gallery: list[tuple[str, str]] = []
+        downloads: list[str] = []
+        for run_index, run_seed in enumerate(seeds):
+            request = RelightRequest(
+                frames=frames, fps=loaded.fps, audio_path=loaded.audio_path, mode=mode, probe=probe,
+                rotation=rotation, rotate_light=rotate_light, sweep=sweep, intensity=intensity,
+                albedo=frames if mode == "render" else None, steps=steps, sampler=sampler, seed=run_seed,
+                guidance=guidance, should_stop=stop.is_set)
+            chunks_relit: list[np.ndarray] = []
+            result = None
+            for event in relighter.run(request):
+                if isinstance(event, Progress):
+                    done = (run_index * event.num_chunks + event.chunk) * event.total_steps + event.step
+                    total = len(seeds) * event.num_chunks * event.total_steps
+                    yield RunOutputs(
+                        status=status_html(done / total, _progress_text(event, run_index, len(seeds), run_seed)),
+                        relit_image=self._save_preview(job, "relit-preview", event.relit_preview),
+                        albedo_image=self._save_preview(job, "albedo-preview", event.albedo_preview),
+                    ).values()
+                elif isinstance(event, ChunkDone) and is_video and event.num_chunks > 1:
+                    chunks_relit.append(event.relit)
+                    partial = self._save(job, f"relit-part{event.chunk}", np.concatenate(chunks_relit),
+                                         loaded.fps, (None, 0.0), True)
+                    yield RunOutputs(relit_video=partial).values()
+                elif isinstance(event, Finished):
+                    result = event.result
+            if result is None:  # stopped
+                yield RunOutputs(status=status_html(0.0, "Stopped.", "stopped")).values()
+                return
+            files = self._save_result(job, result, audio, is_video,
+                                      suffix=f"-seed{run_seed}" if mode == "random" else "")
+            downloads += files["downloads"]
+            if mode == "random":
+                gallery.append((files["relit_still"], f"seed {run_seed}"))
+            yield RunOutputs(
+                status=status_html((run_index + 1) / len(seeds),
+                                   f"Done in {_duration(result.seconds)}." if run_index + 1 == len(seeds)
+                                   else f"Seed {run_seed} done.", "done" if run_index + 1 == len(seeds)
+                                   else "running"),
+                relit_image=files["relit_still"], albedo_image=files["albedo_still"],
+                relit_video=files.get("relit_video"), albedo_video=files.get("albedo_video"),
+                compare=None if is_video else (input_file, files["relit_still"]),
+                seeds=list(gallery) if mode == "random" else None,
+                downloads=list(downloads),
+            ).values()
+
+    # -- examples -------------------------------------------------------------------------------
+
+    def show_example(self, manifest: dict, name: str) -> tuple:
+        """The cached results of one example, shown without running the model."""
+        entry = next(e for e in manifest["examples"] if e["name"] == name)
+        root = Path(manifest["root"])
+        out = {k: str(root / v) for k, v in entry["outputs"].items()}
+        video = entry.get("video", False)
+        return RunOutputs(
+            status=status_html(1.0, f"Cached example “{name}” (computed by scripts/make_examples.py).", "done"),
+            input_image=None if video else str(root / entry["input"]),
+            input_video=str(root / entry["input"]) if video else None,
+            relit_image=out.get("relit_still"), albedo_image=out.get("albedo_still"),
+            relit_video=out.get("relit_video"), albedo_video=out.get("albedo_video"),
+            compare=None if video else (str(root / entry["input"]), out["relit_still"]),
+            downloads=[v for k, v in out.items() if k in entry.get("downloads", [])],
+        ).values()
+
+    # -- files ----------------------------------------------------------------------------------
+
+    def _job_dir(self, kind: str) -> Path:
+        path = self.work_dir / kind / uuid.uuid4().hex
+        path.mkdir(parents=True)
+        return path
+
+    def _frame_count(self, path, frame_start, frame_end) -> int:
+        if Path(path).suffix.lower() not in VIDEO_SUFFIXES:
+            return 1
+        return max(1, int(frame_end) - int(frame_start) + 1)
+
+    def _load_media(self, path, frame_start, frame_end, size: int) -> media.Media:
+        """The frames to relight, at the working resolution (videos: the chosen range only)."""
+        start, end = int(frame_start or 0), int(frame_end or 0)
+        if Path(path).suffix.lower() in VIDEO_SUFFIXES and end < start:
+            raise InputError(f"The last frame ({end}) comes before the first ({start}); set the frame range again.")
+        return media.load_media(path, start=start, end=end + 1, size=int(size))
+
+    @staticmethod
+    def _save_preview(job: Path, name: str, frame: np.ndarray) -> str:
+        # A fresh name per step: the browser would otherwise keep showing a cached image.
+        path = job / f"{name}-{uuid.uuid4().hex[:8]}.png"
+        media.save_image(path, frame)
+        return str(path)
+
+    @staticmethod
+    def _save(job: Path, name: str, frames: np.ndarray, fps, audio: tuple, is_video: bool) -> str:
+        """PNG for an image, mp4 (with the source's audio over the same span) for a video."""
+        if is_video:
+            path = job / f"{name}.mp4"
+            media.save_video(path, frames, fps, audio_from=audio[0], audio_start=audio[1])
+        else:
+            path = job / f"{name}.png"
+            media.save_image(path, frames[0])
+        return str(path)
+
+    def _save_result(self, job: Path, result, audio: tuple, is_video: bool, suffix: str = "") -> dict:
+        files: dict = {}
+        middle = result.relit.shape[0] // 2
+        files["relit_still"] = str(job / f"relit{suffix}.png")
+        files["albedo_still"] = str(job / f"albedo{suffix}.png")
+        media.save_image(files["relit_still"], result.relit[middle])
+        media.save_image(files["albedo_still"], result.albedo[middle])
+        if is_video:
+            files["relit_video"] = self._save(job, f"relit{suffix}", result.relit, result.fps, audio, True)
+            files["albedo_video"] = self._save(job, f"albedo{suffix}", result.albedo, result.fps, audio, True)
+            files["downloads"] = [files["relit_video"], files["albedo_video"]]
+        else:
+            exr = job / f"relit{suffix}-linear.exr"
+            media.save_exr(exr, preview.display_to_linear(result.relit[0]))
+            files["downloads"] = [files["relit_still"], files["albedo_still"], str(exr)]
+        return files
+
+
+def _progress_text(event: Progress, run_index: int, runs: int, seed: int) -> str:
+    parts = [f"Step {event.step} of {event.total_steps}"]
+    if event.num_chunks > 1:
+        parts.append(f"chunk {event.chunk + 1} of {event.num_chunks}")
+    if runs > 1:
+        parts.append(f"seed {seed} ({run_index + 1} of {runs})")
+    parts.append(f"about {_duration(event.eta_s)} left")
+    return " · ".join(parts)
+
+
+def _duration(seconds: float) -> str:
+    seconds = max(0.0, float(seconds))
+    if seconds < 60:
+        return f"{seconds:.0f} s" if seconds >= 1 else "under a second"
+    minutes, rest = divmod(int(round(seconds)), 60)
+    if minutes < 60:
+        return f"{minutes} min {rest:02d} s"
+    hours, minutes = divmod(minutes, 60)
+    return f"{hours} h {minutes:02d} min"
+
+
+def probe_choices(library: ProbeLibrary) -> list[tuple[str, str]]:
+    """(thumbnail, name) items of the probe gallery."""
+    return [(str(e.thumbnail), e.name) for e in library.entries]
