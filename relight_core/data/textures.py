@@ -25,7 +25,6 @@ class TextureSpec:
 def make_texture(spec: TextureSpec, size: int = 256) -> np.ndarray:
     """Render the texture as sRGB float32 [size, size, 3], tileable in u and v."""
     v, u = (np.mgrid[0:size, 0:size].astype(np.float32) + 0.5) / size  # [S,S] each
-    c, s = np.cos(spec.angle), np.sin(spec.angle)
     # Integer frequencies keep every pattern tileable on the unit uv square.
     f = max(1, round(spec.frequency))
     if spec.kind == "checker":
@@ -39,12 +38,10 @@ def make_texture(spec: TextureSpec, size: int = 256) -> np.ndarray:
         weight = _fractal_noise(size, spec.seed, base=max(2, f))
         weight = np.clip((weight - weight.min()) / (np.ptp(weight) + 1e-6), 0, 1)
     elif spec.kind == "wood":
-        turb = _fractal_noise(size, spec.seed, base=4)
-        x, y = c * u - s * v, s * u + c * v
-        # Rings around a line outside the patch look like planks cut along the grain.
-        rings = np.sqrt((x - 2.0) ** 2 + 0.05 * (y - 0.5) ** 2)
-        weight = 0.5 + 0.5 * np.sin(2 * np.pi * (f * 2 * rings + 1.5 * turb))
-        weight = weight**3
+        # Grain lines across the patch, bent by periodic noise: tileable like the stripes.
+        turb = _fractal_noise(size, spec.seed, base=2)
+        across = v if round(2 * spec.angle / np.pi) % 2 else u
+        weight = (0.5 + 0.5 * np.sin(2 * np.pi * (f * across + 1.5 * turb))) ** 3
     else:
         raise ValueError(f"unknown texture kind {spec.kind!r}")
     a, b = np.asarray(spec.color_a, np.float32), np.asarray(spec.color_b, np.float32)
