@@ -137,19 +137,19 @@ def _run_media_command(args) -> int:
     from relight_core import lighting, media
     from relight_core.pipeline import ChunkDone, Finished, Progress, Relighter, RelightRequest
 
+    start, end = args.frames
+    source = media.load_media(args.input, start=start, end=end)
+    probe = None
+    if getattr(args, "probe", None) is not None:
+        probe = lighting.load_probe(args.probe, intensity=args.intensity)
     relighter = Relighter.load(args.model, device=args.device)
     if not relighter.spec.trained:
         print(f"note: model '{relighter.spec.name}' has random weights; results will be noise.",
               file=sys.stderr)
-    start, end = args.frames
-    source = media.load_media(args.input, start=start, end=end)
     size = args.size or relighter.spec.size
     frames = media.resize_frames(source.frames, size, multiple=relighter.frame_multiple)
-    probe = None
-    if getattr(args, "probe", None) is not None:
-        probe = lighting.load_probe(args.probe, intensity=args.intensity)
-    base = dict(fps=source.fps, audio_path=source.audio_path, steps=args.steps, sampler=args.sampler,
-                guidance=args.guidance)
+    base = dict(fps=source.fps, audio_path=source.audio_path, audio_start=source.audio_start, steps=args.steps,
+                sampler=args.sampler, guidance=args.guidance)
     if getattr(args, "rotation", None) is not None:
         base["rotation"] = args.rotation
     if getattr(args, "rotate_light", False):
@@ -188,7 +188,8 @@ def _run_media_command(args) -> int:
             for name, out_frames in outputs.items():
                 if source.is_video:
                     path = staging / f"{prefix}{name}.mp4"
-                    media.save_video(path, out_frames, source.fps, audio_from=source.audio_path)
+                    media.save_video(path, out_frames, source.fps, audio_from=source.audio_path,
+                                     audio_start=source.audio_start)
                 else:
                     path = staging / f"{prefix}{name}.png"
                     media.save_image(path, out_frames[0])

@@ -50,6 +50,7 @@ class RelightRequest:
     frames: np.ndarray
     fps: float | None = None
     audio_path: str | None = None
+    audio_start: float = 0.0              # seconds into audio_path where the frames begin
     mode: str = "relight"                 # relight | albedo | render | random
     probe: torch.Tensor | np.ndarray | None = None  # linear lat-long [h,w,3]
     rotation: float = lighting.DEFAULT_ROTATION
@@ -98,6 +99,7 @@ class RelightResult:
     audio_path: str | None
     seed: int
     mode: str
+    audio_start: float = 0.0
     seconds: float = 0.0
     info: dict = field(default_factory=dict)
 
@@ -258,7 +260,7 @@ class Relighter:
         if evals_done:
             self._seconds_per_eval = (time.perf_counter() - eval_started) / evals_done
         yield Finished(RelightResult(relit_out, albedo_out, request.fps, request.audio_path, request.seed,
-                                     request.mode, seconds,
+                                     request.mode, request.audio_start, seconds,
                                      {"chunks": len(chunks), "steps": steps, "sampler": sampler_name,
                                       "evaluations": evals_done, "model": self.spec.name,
                                       "trained": self.spec.trained}))

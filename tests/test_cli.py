@@ -97,3 +97,10 @@ def test_module_entry_point_runs_as_a_program(files, tmp_path):
                           cwd=ROOT, capture_output=True, text=True, timeout=120)
     assert proc.returncode == 2
     assert proc.stderr.strip().startswith("error: ") and "Traceback" not in proc.stderr
+
+
+def test_frame_range_of_a_video(files, tmp_path):
+    assert main(["albedo", str(files["mp4"]), "--frames", "4:10", "--out", str(tmp_path), *FAST]) == 0
+    with av.open(str(tmp_path / "albedo.mp4")) as container:
+        assert sum(1 for _ in container.decode(video=0)) == 6
+        assert len(container.streams.audio) == 1
