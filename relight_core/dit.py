@@ -121,9 +121,7 @@ class RMSNorm(nn.Module):
         self.weight = nn.Parameter(torch.ones(dim))
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        x32 = x.float()
-        x32 = x32 * torch.rsqrt(x32.pow(2).mean(-1, keepdim=True) + self.eps)
-        return (x32 * self.weight.float()).to(x.dtype)
+        return F.rms_norm(x.float(), x.shape[-1:], self.weight.float(), self.eps).to(x.dtype)
 
 
 def layer_norm(x: torch.Tensor) -> torch.Tensor:
@@ -132,7 +130,7 @@ def layer_norm(x: torch.Tensor) -> torch.Tensor:
 
 
 def modulate(x: torch.Tensor, shift: torch.Tensor, scale: torch.Tensor) -> torch.Tensor:
-    return x * (1 + scale.unsqueeze(1)) + shift.unsqueeze(1)
+    return torch.addcmul(shift.unsqueeze(1), x, 1 + scale.unsqueeze(1))   # x·(1 + scale) + shift
 
 
 class TimestepEmbedder(nn.Module):
@@ -178,11 +176,13 @@ def rope_angles(head_dim: int, t: int, h: int, w: int, extrapolation=(1.0, 1.0, 
 
 
 def apply_rope(x: torch.Tensor, cos: torch.Tensor, sin: torch.Tensor) -> torch.Tensor:
-    """Rotate dims i and i + hd/2 together (non-interleaved, as transformer_engine does), in fp32."""
-    x32 = x.float()
-    x1, x2 = x32.chunk(2, dim=-1)
-    rotated = torch.cat([-x2, x1], dim=-1)
-    return (x32 * cos + rotated * sin).to(x.dtype)
+    """Rotate dims i and i + hd/2 by the same angle (non-interleaved, as transformer_engine), in fp32.
+
+    `cos`, `sin` hold the first half of the angles (the second half repeats it), e.g. [L, 1, hd/2]
+    against x [B, L, heads, hd].
+    """
+    x1, x2 = x.float().chunk(2, dim=-1)
+    return torch.cat([x1 * cos - x2 * sin, x2 * cos + x1 * sin], dim=-1).to(x.dtype)
 
 
 #################################################################################
@@ -205,17 +205,17 @@ class Attention(nn.Module):
         self.out_proj = nn.Linear(width, width, bias=False)
 
     def heads(self, x: torch.Tensor) -> torch.Tensor:
-        return x.unflatten(-1, (self.num_heads, -1)).transpose(1, 2)          # (B, heads, L, hd)
+        return x.unflatten(-1, (self.num_heads, -1))                           # (B, L, heads, hd)
 
     def forward(self, x: torch.Tensor, context: torch.Tensor | None = None,
                 rope: tuple[torch.Tensor, torch.Tensor] | None = None) -> torch.Tensor:
         source = x if context is None else context                             # (B, L or M, ·)
-        q = self.q_norm(self.heads(self.q_proj(x)))                            # (B, heads, L, hd)
-        k = self.k_norm(self.heads(self.k_proj(source)))                       # (B, heads, L|M, hd)
-        v = self.heads(self.v_proj(source))                                    # (B, heads, L|M, hd)
+        q = self.q_norm(self.heads(self.q_proj(x)))                            # (B, L, heads, hd)
+        k = self.k_norm(self.heads(self.k_proj(source)))                       # (B, L|M, heads, hd)
+        v = self.heads(self.v_proj(source))                                    # (B, L|M, heads, hd)
         if rope is not None:
             q, k = apply_rope(q, *rope), apply_rope(k, *rope)
-        out = F.scaled_dot_product_attention(q, k, v)                          # (B, heads, L, hd)
+        out = F.scaled_dot_product_attention(q.transpose(1, 2), k.transpose(1, 2), v.transpose(1, 2))
         return self.out_proj(out.transpose(1, 2).flatten(2))                   # (B, L, D)
 
 
@@ -261,13 +261,16 @@ class JointDiTBlock(nn.Module):
 
     def forward(self, x, emb, adaln_lora, rope, context=None):
         shift, scale, gate = self.self_attn_mod(emb, adaln_lora)                      # 3 × (B, D)
-        x = x + gate.unsqueeze(1) * self.self_attn(modulate(layer_norm(x), shift, scale), rope=rope)
+        h = self.self_attn(modulate(layer_norm(x), shift, scale), rope=rope)          # (B, L, D)
+        x = torch.addcmul(x, gate.unsqueeze(1), h)                                    # x + gate·h
         # A zero context gives exactly zero cross-attention (no biases, RMSNorm(0) = 0): skip it.
         if self.cross_attn is not None and context is not None:
             shift, scale, gate = self.cross_attn_mod(emb, adaln_lora)                 # 3 × (B, D)
-            x = x + gate.unsqueeze(1) * self.cross_attn(modulate(layer_norm(x), shift, scale), context)
+            h = self.cross_attn(modulate(layer_norm(x), shift, scale), context)       # (B, L, D)
+            x = torch.addcmul(x, gate.unsqueeze(1), h)
         shift, scale, gate = self.mlp_mod(emb, adaln_lora)                            # 3 × (B, D)
-        return x + gate.unsqueeze(1) * self.mlp(modulate(layer_norm(x), shift, scale))  # (B, L, D)
+        h = self.mlp(modulate(layer_norm(x), shift, scale))                           # (B, L, D)
+        return torch.addcmul(x, gate.unsqueeze(1), h)                                 # (B, L, D)
 
 
 class FinalLayer(nn.Module):
@@ -343,11 +346,11 @@ class JointDiT(nn.Module):
         return x.reshape(b, c, t, h, w)
 
     def rope(self, t: int, h: int, w: int, device) -> tuple[torch.Tensor, torch.Tensor]:
-        """cos, sin [3·t·h·w, hd] in token units: one clip's 3D RoPE, repeated for each clip."""
+        """cos, sin [3·t·h·w, 1, hd/2] in token units: one clip's 3D RoPE, repeated for each clip."""
         c = self.config
         angles = rope_angles(c.head_dim, t, h, w, c.rope_extrapolation, c.rope_theta, device)  # (thw, hd)
-        angles = angles.repeat(NUM_CLIPS, 1)                               # (3·thw, hd)
-        return angles.cos(), angles.sin()
+        angles = angles[:, None, :c.head_dim // 2].repeat(NUM_CLIPS, 1, 1)  # (3·thw, 1, hd/2)
+        return angles.cos(), angles.sin()                                  # broadcast over heads
 
     def forward(self, x: torch.Tensor, c_noise: torch.Tensor, context: torch.Tensor | None = None
                 ) -> torch.Tensor:
@@ -358,7 +361,7 @@ class JointDiT(nn.Module):
         if frames % NUM_CLIPS:
             raise ValueError(f"{frames} latent frames do not split into {NUM_CLIPS} equal clips")
         pt, p = self.config.patch_temporal, self.config.patch_spatial
-        dtype = self.patch_embed.weight.dtype                              # a bf16-cast model takes fp32 input
+        dtype = self.patch_embed.weight.dtype                              # bf16 weights, fp32 input
         x = x.to(dtype)
         context = None if context is None else context.to(dtype)
         tokens = self.patch_embed(self.patchify(self.embed_inputs(x)))     # (B, L, D), L = 3t·h'·w'

@@ -114,12 +114,21 @@ def test_rope_repeats_per_clip_and_separates_positions():
     t, h, w = 2, 3, 4
     cos, sin = model.rope(t, h, w, "cpu")
     per_clip = t * h * w
-    assert cos.shape == (3 * per_clip, TINY.head_dim)
+    assert cos.shape == (3 * per_clip, 1, TINY.head_dim // 2)
     for clip in (1, 2):
         assert torch.equal(cos[clip * per_clip:(clip + 1) * per_clip], cos[:per_clip])
         assert torch.equal(sin[clip * per_clip:(clip + 1) * per_clip], sin[:per_clip])
     positions = torch.cat([cos[:per_clip], sin[:per_clip]], dim=1)
     assert torch.unique(positions, dim=0).shape[0] == per_clip   # every (t, h, w) differs
+
+
+def test_apply_rope_matches_rotate_half_form_on_full_angles():
+    angles = rope_angles(128, t=2, h=3, w=2)                     # (12, 128)
+    x = torch.randn(2, 4, 12, 128)
+    x1, x2 = x.chunk(2, dim=-1)
+    full = x * angles.cos() + torch.cat([-x2, x1], dim=-1) * angles.sin()   # transformer_engine form
+    half = angles[:, :64]
+    torch.testing.assert_close(apply_rope(x, half.cos(), half.sin()), full)
 
 
 def test_attention_depends_only_on_relative_position_within_and_across_clips():
