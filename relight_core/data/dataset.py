@@ -22,7 +22,7 @@ import numpy as np
 import torch
 
 from relight_core import lighting
-from relight_core.data.files import read_exr, read_png, write_exr, write_png
+from relight_core.data.files import read_exr, read_image, write_exr, write_png
 from relight_core.errors import InputError
 
 FORMAT = "relight-data/1"
@@ -88,7 +88,7 @@ class Item:
 def read_stream(sample_dir: Path, folder: str, frames: list[int]) -> np.ndarray:
     """Frames of one stream as float32 [T,H,W,3] ([T,H,W] for the mask)."""
     ext = "exr" if folder.startswith("env") else "png"
-    reader = read_exr if ext == "exr" else read_png
+    reader = read_exr if ext == "exr" else read_image
     return np.stack([reader(sample_dir / folder / f"{frame_name(t)}.{ext}") for t in frames])
 
 
@@ -97,8 +97,8 @@ class RelightDataset(torch.utils.data.Dataset):
 
     Each item is a dict: `input`, `relit`, `albedo` [3,T,H,W] in [−1, 1]; `env_ldr`, `env_log`,
     `env_dir` [3,T,H,W] (lighting.encode_lighting of the target's camera-frame probe); `mask`
-    [1,T,H,W] in {0, 1}; `has_input`, `has_lighting` (bool tensors; when false the matching
-    tensors are zeros, as for auto-labelled videos); `path` (str). `clip_frames` cuts a window of
+    [1,T,H,W] in {0, 1}; `has_input`, `has_lighting`, `has_albedo` (bool tensors; when false the
+    matching tensors are zeros, as for auto-labelled videos); `path` (str). `clip_frames` cuts a window of
     that many frames (1 gives images for image–video co-training); the window start is drawn
     from (seed, epoch, index).
     """
@@ -187,5 +187,6 @@ class RelightDataset(torch.utils.data.Dataset):
             "mask": torch.from_numpy((mask > 0.5).astype(np.float32))[None],
             "has_input": torch.tensor(has_input),
             "has_lighting": torch.tensor(has_lighting),
+            "has_albedo": torch.tensor(True),
             "path": str(item.sample_dir),
         }

@@ -33,8 +33,8 @@ def write_png(path: str | Path, image: np.ndarray) -> None:
     _atomic_write(Path(path), buf.tobytes())
 
 
-def read_png(path: str | Path) -> np.ndarray:
-    """Read an 8-bit PNG as float32 in [0, 1]: [H,W,3] for colour, [H,W] for grey."""
+def read_image(path: str | Path) -> np.ndarray:
+    """Read an 8-bit PNG or JPEG as float32 in [0, 1]: [H,W,3] for colour, [H,W] for grey."""
     data = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if data is None:
         raise OSError(f"cannot read image {path}")
