@@ -130,25 +130,30 @@ def load_model(model: str | Path = "default", device: str | torch.device = "cpu"
     spec, directory = resolve_model(model)
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(0)  # a preset's random weights are the same in every process
-        dit = JointDiT(spec.dit)
         tokenizer = build_tokenizer(spec.tokenizer, directory)
-    if directory is not None:
-        _load_state(dit, directory / DIT_FILE)
-        if spec.tokenizer.get("type") != "cosmos-jit":
-            _load_state(tokenizer, directory / TOKENIZER_FILE)
+        if directory is None:
+            dit = JointDiT(spec.dit)
+        else:
+            # Weights come from disk: build on the meta device so a 7B model is never
+            # materialised twice (random init, then the loaded copy).
+            with torch.device("meta"):
+                dit = JointDiT(spec.dit)
+            _load_state(dit, directory / DIT_FILE, device)
+    if directory is not None and spec.tokenizer.get("type") != "cosmos-jit":
+        _load_state(tokenizer, directory / TOKENIZER_FILE, device)
     dit.to(device).eval().requires_grad_(False)
     if isinstance(tokenizer, torch.nn.Module):
         tokenizer.to(device).eval().requires_grad_(False)
     return spec, dit, tokenizer
 
 
-def _load_state(module: torch.nn.Module, path: Path) -> None:
+def _load_state(module: torch.nn.Module, path: Path, device: str | torch.device = "cpu") -> None:
     """Load a safetensors file into `module`, failing with one sentence on any mismatch."""
     if not path.is_file():
         raise InputError(f"The model folder is missing {path.name} (expected at {path}); "
                          "copy the complete model folder.")
     try:
-        state = load_file(str(path))
+        state = load_file(str(path), device=str(device))
     except Exception as exc:  # safetensors raises its own error types for corrupt headers
         raise InputError(f"{path} is not a readable safetensors file ({exc}); re-download it.") from exc
     expected = module.state_dict()
@@ -160,4 +165,4 @@ def _load_state(module: torch.nn.Module, path: Path) -> None:
                   f"(e.g. {unexpected[:2]}), {len(wrong)} with the wrong shape (e.g. "
                   f"{[(k, tuple(state[k].shape), tuple(expected[k].shape)) for k in wrong[:2]]})")
         raise InputError(f"The weights in {path} do not match the model in config.json: {detail}.")
-    module.load_state_dict(state)
+    module.load_state_dict(state, assign=True)
