@@ -74,8 +74,9 @@ def import_released(checkpoint: str | Path, tokenizer_dir: str | Path, out: str 
     save_file({k: converted[k].contiguous() for k in expected}, out / DIT_FILE)
     tokenizer = {"type": "cosmos-jit", "encoder": str(tokenizer_dir / "encoder.jit"),
                  "decoder": str(tokenizer_dir / "decoder.jit")}
-    if (tokenizer_dir / "mean_std.pt").is_file():
-        tokenizer["mean_std"] = str(tokenizer_dir / "mean_std.pt")
+    for key in ("mean_std", "image_mean_std"):  # latent statistics shipped beside the JIT files
+        if (tokenizer_dir / f"{key}.pt").is_file():
+            tokenizer[key] = str(tokenizer_dir / f"{key}.pt")
     released = dataclasses.replace(spec, dit=config, tokenizer=tokenizer, trained=True,
                                    notes={"source": str(checkpoint.resolve())})
     (out / CONFIG_FILE).write_text(json.dumps(released.to_json(), indent=2))
