@@ -56,7 +56,7 @@ def mit_root(tmp_path_factory):
     x0 = y0 = SIZE / 2 - r_pix
     with SceneRenderer(spec, SIZE, spp=16, probes=probes) as renderer:
         for light, direction in enumerate(SUNS):
-            photo = srgb_encode(renderer.render(0, light, seed=3).rgb)
+            photo = srgb_encode(renderer.render(0, light, seed=3))
             cv2.imwrite(str(scene / f"dir_{direction}_mip2.jpg"), (photo[..., ::-1] * 255).round().astype(np.uint8),
                         [cv2.IMWRITE_JPEG_QUALITY, 95])
             crop = photo[int(round(y0)):int(round(y0 + 2 * r_pix)), int(round(x0)):int(round(x0 + 2 * r_pix))]

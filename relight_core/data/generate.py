@@ -36,7 +36,7 @@ def scene_dir(config: RenderConfig, index: int) -> Path:
 
 
 def frame_seed(spec: SceneSpec, frame: int) -> int:
-    """Mitsuba's sampler seed of a frame: the same for both lights, so their AOVs agree exactly."""
+    """Mitsuba's sampler seed of a frame (both lights use it: their noise is correlated, not different)."""
     return int(np.random.SeedSequence([spec.seed, SPLITS.index(spec.split), spec.index, frame])
                .generate_state(1)[0] & 0x7FFFFFFF)
 
@@ -48,12 +48,11 @@ def render_scene(spec: SceneSpec, size: int, spp: int, out_dir: Path) -> None:
         for t in range(spec.frames):
             seed = frame_seed(spec, t)
             for light in (0, 1):
-                frame = renderer.render(t, light, seed)
-                write_frame(out_dir, f"rgb{light}", t, srgb_encode(frame.rgb))
+                write_frame(out_dir, f"rgb{light}", t, srgb_encode(renderer.render(t, light, seed)))
                 write_frame(out_dir, f"env{light}", t, renderer.camera_probe(t, light))
-                if light == 0:  # albedo and mask do not depend on the light (same seed ⇒ same AOVs)
-                    write_frame(out_dir, "albedo", t, srgb_encode(frame.albedo))
-                    write_frame(out_dir, "mask", t, frame.mask)
+            albedo, mask = renderer.render_aovs(t, seed)  # shared by both lights: same geometry
+            write_frame(out_dir, "albedo", t, srgb_encode(albedo))
+            write_frame(out_dir, "mask", t, mask)
     write_meta(out_dir, {
         "kind": "synthetic", "frames": spec.frames, "height": size, "width": size, "lights": 2,
         "motion": list(spec.motion), "probes": [p.source for p in spec.probes],

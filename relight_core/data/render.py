@@ -17,7 +17,6 @@ import glob
 import os
 import tempfile
 import warnings
-from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
@@ -35,6 +34,7 @@ from relight_core.data.textures import make_texture
 _variant: str | None = None
 TEXTURE_SIZE = 256
 PROBE_HEIGHT = 128  # procedural probes are generated at 128×256
+AOV_SPP = 16  # albedo/mask samples per pixel (anti-aliasing only: no noise to average out)
 
 
 def init_mitsuba(threads: int | None = None) -> str:
@@ -64,15 +64,6 @@ def init_mitsuba(threads: int | None = None) -> str:
 def to_mitsuba_bitmap(probe: np.ndarray) -> np.ndarray:
     """Project-convention lat-long [h,w,3] → the array Mitsuba's envmap reads the same way."""
     return np.roll(probe, -probe.shape[1] // 2, axis=1)
-
-
-@dataclass
-class FrameRender:
-    """One rendered frame: linear RGB [H,W,3], linear albedo [H,W,3], mask [H,W] in {0,1}."""
-
-    rgb: np.ndarray
-    albedo: np.ndarray
-    mask: np.ndarray
 
 
 class SceneRenderer:
@@ -114,14 +105,25 @@ class SceneRenderer:
     def __exit__(self, *exc) -> None:
         self.close()
 
-    def render(self, frame: int, light: int, seed: int) -> FrameRender:
-        """Path-trace one frame under probe `light`; the same seed gives identical AOVs for both lights."""
+    def render(self, frame: int, light: int, seed: int) -> np.ndarray:
+        """Path-trace one frame under probe `light`: linear RGB [H,W,3]."""
         import mitsuba as mi
 
         scene = mi.load_dict(self.scene_dict(frame, light))
-        image = np.asarray(mi.render(scene, spp=self.spp, seed=seed), dtype=np.float32)  # [H,W,7]
-        return FrameRender(rgb=np.clip(image[..., 0:3], 0, None), albedo=np.clip(image[..., 3:6], 0, 1),
-                           mask=(image[..., 6] > 0).astype(np.float32))
+        return np.clip(np.asarray(mi.render(scene, spp=self.spp, seed=seed), dtype=np.float32), 0, None)
+
+    def render_aovs(self, frame: int, seed: int, light: int = 0) -> tuple[np.ndarray, np.ndarray]:
+        """Albedo (linear [H,W,3]) and mask ([H,W] in {0,1}) of a frame; they do not depend on `light`.
+
+        A separate AOV-only pass: wrapping the path tracer in the `aov` integrator doubles its cost,
+        and anti-aliasing the albedo needs far fewer samples than the light transport.
+        """
+        import mitsuba as mi
+
+        scene = self.scene_dict(frame, light)
+        scene["integrator"] = {"type": "aov", "aovs": "albedo:albedo,depth:depth"}
+        image = np.asarray(mi.render(mi.load_dict(scene), spp=min(self.spp, AOV_SPP), seed=seed), np.float32)
+        return np.clip(image[..., 0:3], 0, 1), (image[..., 3] > 0).astype(np.float32)
 
     def camera_probe(self, frame: int, light: int) -> np.ndarray:
         """The probe as seen from this frame's camera: panorama [H,W,3] in the model's convention."""
@@ -147,8 +149,7 @@ class SceneRenderer:
         origin = camera_position(spec, frame)
         scene: dict = {
             "type": "scene",
-            "integrator": {"type": "aov", "aovs": "albedo:albedo,depth:depth",
-                           "integrator": {"type": "path", "max_depth": 3}},
+            "integrator": {"type": "path", "max_depth": 3},
             "sensor": {
                 "type": "perspective", "fov": spec.camera.fov, "fov_axis": "x",
                 "to_world": T().look_at(origin=origin.tolist(), target=list(spec.camera.target), up=[0, 1, 0]),
