@@ -150,7 +150,8 @@ class Relighter:
 
     def __init__(self, spec: ModelSpec, dit, tokenizer, device: str | torch.device = "cpu"):
         self.spec = spec
-        self.dit = dit
+        # bf16 weights, as the released inference runs: no per-call weight casts under autocast.
+        self.dit = dit.to(torch.bfloat16) if spec.autocast_bf16 else dit
         self.tokenizer = tokenizer
         self.device = torch.device(device)
         self.denoiser = EDMPrecond(self._network)
