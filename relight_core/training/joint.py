@@ -1,0 +1,196 @@
+"""Training the joint relighting DiT on cached latents, and exporting its EMA as a model folder."""
+
+from __future__ import annotations
+
+import copy
+import datetime
+import math
+from dataclasses import asdict, dataclass, field, replace
+from pathlib import Path
+
+import torch
+
+from relight_core.checkpoint import MODEL_PRESETS, ModelSpec, save_model
+from relight_core.data.dataset import RelightDataset
+from relight_core.dit import JointDiT
+from relight_core.tokenizer import build_tokenizer
+from relight_core.training.latents import LatentSet, build_latent_set
+from relight_core.training.loop import (
+    EMA,
+    LOG_FILE,
+    Clock,
+    JsonlLog,
+    load_checkpoint,
+    make_optimizer,
+    save_checkpoint,
+    set_lr,
+    step_generator,
+)
+from relight_core.training.recipe import MODES, Recipe, denoising_loss, make_example
+
+
+@dataclass(frozen=True)
+class DiTTrainConfig:
+    """A DiT training run on top of a frozen, trained tokenizer."""
+
+    data: Path                           # dataset root (train/ and, for validation, test/)
+    run: Path                            # run folder: log.jsonl, ckpt/
+    tokenizer: Path                      # tokenizer weights written by train-tokenizer
+    tokenizer_preset: str = "small"
+    preset: str = "small"                # MODEL_PRESETS entry the DiT config and defaults come from
+    steps: int = 100000                  # stop after this many steps ...
+    minutes: float | None = None         # ... or this much wall time, whichever first
+    video_batch: int = 4                 # clips per video step
+    image_batch: int = 8                 # images per image step (1-frame clips: half the tokens)
+    image_fraction: float = 0.5          # share of image steps (paper stage 1: 1:1)
+    lr: float = 2e-4                     # from scratch; the paper's 2e-5 is for fine-tuning 7B
+    betas: tuple[float, float] = (0.9, 0.99)
+    weight_decay: float = 0.01           # the paper's 0.1 is for a pre-trained 7B; small model: less
+    warmup: int = 200
+    grad_clip: float = 1.0
+    ema_decay: float = 0.999
+    log_every: int = 10
+    val_every: int = 250
+    checkpoint_minutes: float = 5.0
+    seed: int = 0
+    cache: Path = Path("cache/latents")
+    export: Path | None = None           # write the EMA model folder here at the end
+    recipe: Recipe = field(default_factory=Recipe)
+
+
+def draw_batch(latents: LatentSet, config: DiTTrainConfig, generator: torch.Generator) -> tuple[dict, bool]:
+    """A random video or image batch of latents (image with probability `image_fraction`)."""
+    is_image = bool(torch.rand(1, generator=generator) < config.image_fraction)
+    size = config.image_batch if is_image else config.video_batch
+    indices = torch.randint(0, len(latents), (size,), generator=generator).tolist()
+    frames = torch.randint(0, latents.num_image_frames, (size,), generator=generator).tolist() if is_image else None
+    return latents.batch(indices, frames), is_image
+
+
+def train_step(dit: JointDiT, batch: dict, recipe: Recipe, generator: torch.Generator) -> tuple[torch.Tensor, dict]:
+    """Loss of one batch under bf16 autocast (backward not taken); also the drawn modes."""
+    example = make_example(batch["input"], batch["relit"], batch["albedo"], batch["lighting"], recipe, generator,
+                           batch["has_input"], batch["has_lighting"])
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        loss, sigma = denoising_loss(dit, example, recipe, generator)
+    counts = {f"n_{m}": int((example.modes == i).sum()) for i, m in enumerate(MODES)}
+    counts["n_no_light"] = int(example.lighting_dropped.sum())
+    return loss, counts
+
+
+@torch.no_grad()
+def validation_loss(dit: JointDiT, latents: LatentSet, recipe: Recipe, seed: int, batch: int = 4,
+                    max_items: int = 32) -> float:
+    """Mean loss over the first items' full clips in the default mode with lighting, fixed noise."""
+    recipe = replace(recipe, p_albedo_only=0.0, p_both=0.0, p_drop_lighting=0.0, p_continue=0.0)
+    generator = step_generator(seed, 0, stream=1)
+    was_training = dit.training
+    dit.eval()
+    items = list(range(min(max_items, len(latents))))
+    total = 0.0
+    for start in range(0, len(items), batch):
+        chunk = items[start:start + batch]
+        loss, _ = train_step(dit, latents.batch(chunk), recipe, generator)
+        total += float(loss) * len(chunk)
+    dit.train(was_training)
+    return total / max(len(items), 1)
+
+
+def export_model(out: Path, preset: str, dit: JointDiT, tokenizer, tokenizer_preset: str, size: int,
+                 clip_frames: int, notes: dict, dtype: torch.dtype = torch.bfloat16) -> Path:
+    """Write a model folder: the preset's spec marked trained, at the training size and clip length.
+
+    The DiT is stored in `dtype` (bf16 halves the shipped file; inference runs under bf16 autocast
+    anyway); the tokenizer stays fp32 (it is small). `chunk_frames` is the training clip length with
+    a one-frame overlap, the continuation the recipe trains.
+    """
+    spec: ModelSpec = replace(MODEL_PRESETS[preset], name=f"{preset}-trained",
+                              tokenizer={"type": "causal-ae", "preset": tokenizer_preset},
+                              size=size, chunk_frames=clip_frames, overlap_frames=1 if clip_frames > 1 else 0,
+                              trained=True, notes=notes)
+    return save_model(out, spec, copy.deepcopy(dit).to(dtype), tokenizer)
+
+
+def train_dit(config: DiTTrainConfig, progress: bool = True, command: str | None = None) -> dict:
+    """Train (or resume) a DiT run; exports the EMA model when `config.export` is set. Returns a summary."""
+    run = Path(config.run)
+    tokenizer = build_tokenizer({"type": "causal-ae", "preset": config.tokenizer_preset,
+                                 "weights": str(Path(config.tokenizer).resolve())})
+    tokenizer.requires_grad_(False)
+    train_data = RelightDataset(config.data, "train")
+    latents = build_latent_set(train_data, tokenizer, config.cache, progress)
+    has_test = (Path(config.data) / "test").is_dir()
+    val_latents = build_latent_set(RelightDataset(config.data, "test"), tokenizer, config.cache, progress) \
+        if has_test else None
+
+    spec = MODEL_PRESETS[config.preset]
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(config.seed)
+        dit = JointDiT(spec.dit)
+    ema = EMA(dit, config.ema_decay)
+    ema_model = copy.deepcopy(dit).requires_grad_(False)
+    optimizer = make_optimizer(dit, config.lr, config.betas, config.weight_decay)
+    state = load_checkpoint(run, ["dit", "ema"])
+    step = 0
+    if state is not None:
+        dit.load_state_dict(state["modules"]["dit"])
+        ema.shadow = {k: v.float() for k, v in state["modules"]["ema"].items()}
+        optimizer.load_state_dict(state["optimizer"])
+        step = state["step"]
+    log = JsonlLog(run / LOG_FILE, step if state is not None else None)
+    if state is None:
+        log.write(step=0, event="start", config={k: str(v) for k, v in asdict(config).items()},
+                  train_items=len(latents), val_items=len(val_latents) if val_latents else 0,
+                  params=sum(p.numel() for p in dit.parameters()))
+    clock = Clock(config.minutes, config.checkpoint_minutes)
+    dit.train()
+    last = {}
+
+    def checkpoint() -> None:
+        save_checkpoint(run, step, {"dit": dit.state_dict(), "ema": ema.shadow}, optimizer)
+
+    def validate(**extra) -> float:
+        value = validation_loss(ema.copy_to(ema_model), val_latents, config.recipe, config.seed)
+        log.write(step=step, val_loss=value, seconds=round(clock.elapsed(), 1), **extra)
+        last["val_loss"] = value
+        return value
+
+    while step < config.steps and not clock.out_of_time():
+        generator = step_generator(config.seed, step)
+        batch, is_image = draw_batch(latents, config, generator)
+        lr = set_lr(optimizer, config.lr, step, config.warmup)
+        loss, counts = train_step(dit, batch, config.recipe, generator)
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        grad_norm = torch.nn.utils.clip_grad_norm_(dit.parameters(), config.grad_clip)
+        if not math.isfinite(float(grad_norm)):
+            raise FloatingPointError(f"non-finite gradient at step {step}; lower the learning rate")
+        optimizer.step()
+        ema.update(dit, step)
+        step += 1
+        last["loss"] = float(loss)
+        if step % config.log_every == 0:
+            log.write(step=step, loss=float(loss), kind="image" if is_image else "video", lr=lr,
+                      grad_norm=float(grad_norm), seconds=round(clock.elapsed(), 1), **counts)
+            if progress:
+                print(f"dit step {step}: loss {float(loss):.4f} ({clock.elapsed():.0f}s)", flush=True)
+        if val_latents is not None and step % config.val_every == 0:
+            validate()
+        if clock.checkpoint_due():
+            checkpoint()
+    checkpoint()
+    if val_latents is not None:
+        validate(event="end")
+    summary = {"steps": step, "train_items": len(latents), "val_items": len(val_latents) if val_latents else 0,
+               "seconds_this_session": round(clock.elapsed(), 1), **last}
+    if config.export is not None:
+        clip = latents.scenes[0]["albedo/video"]                                      # (16, t, h, w)
+        size = max(clip.shape[-2:]) * tokenizer.spatial_factor
+        frames = 1 + (clip.shape[1] - 1) * tokenizer.temporal_factor
+        notes = {**summary, "date": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
+                 "data": str(config.data), "tokenizer": str(config.tokenizer), "command": command,
+                 "recipe": asdict(config.recipe)}
+        export_model(Path(config.export), config.preset, ema.copy_to(ema_model), tokenizer,
+                     config.tokenizer_preset, size, frames, notes)
+        summary["export"] = str(config.export)
+    return summary
