@@ -93,3 +93,14 @@ def test_textures_are_two_colour_and_tileable(kind):
     # step between neighbouring columns inside the texture.
     inner = np.abs(np.diff(tex, axis=1)).mean(axis=(0, 2)).max()
     assert np.abs(tex[:, 0] - tex[:, -1]).mean() <= inner + 1e-3
+
+
+def test_closed_meshes_wind_outwards_so_their_fronts_face_the_camera():
+    for name in ("letter_train", "letter_test", "dodecahedron", "knot", "nut"):
+        for seed in range(4):
+            mesh = build_mesh(name, seed)
+            corners = mesh.vertices[mesh.faces]
+            volume = np.einsum("ij,ij->", corners[:, 0], np.cross(corners[:, 1], corners[:, 2])) / 6
+            assert volume > 0, (name, seed)
+            face_normals = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+            assert np.mean(np.einsum("ij,ij->i", face_normals, mesh.normals[mesh.faces].mean(1)) > 0) > 0.99

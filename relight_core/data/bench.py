@@ -53,12 +53,14 @@ def main() -> None:
     parser.add_argument("--size", type=int, default=256)
     parser.add_argument("--spp", type=int, default=64)
     parser.add_argument("--scenes", type=int, default=3)
-    parser.add_argument("--noise-size", type=int, default=64)
+    parser.add_argument("--noise-size", type=int, default=64, help="0 skips the noise measurement")
     parser.add_argument("--reference-spp", type=int, default=1024)
     args = parser.parse_args()
     variant = init_mitsuba(threads=1)
     cost = cpu_seconds_per_frame(args.size, args.spp, args.scenes)
-    noise = psnr_against_reference(args.noise_size, [16, 32, 64, 128], args.reference_spp, args.scenes)
+    noise = {}
+    if args.noise_size:
+        noise = psnr_against_reference(args.noise_size, [16, 36, 64, 144], args.reference_spp, args.scenes)
     print(json.dumps({"variant": variant, "size": args.size, "spp": args.spp,
                       "cpu_seconds_per_frame": round(cost, 3),
                       "frames_per_second_2_workers": round(2 / cost, 3),

@@ -26,7 +26,7 @@ def add_data_commands(subparsers) -> None:
     p.add_argument("--scenes", type=_positive, default=100, help="number of scenes")
     p.add_argument("--frames", type=_positive, default=9, help="frames per scene (1 = images)")
     p.add_argument("--size", type=_positive, default=128, help="frame side in pixels")
-    p.add_argument("--spp", type=_positive, default=64, help="samples per pixel")
+    p.add_argument("--spp", type=_positive, default=64, help="samples per pixel (rounded up to a square, k×k stratified)")
     p.add_argument("--seed", type=int, default=0, help="dataset seed: same seed, same files")
     p.add_argument("--workers", type=_positive, default=os.cpu_count() or 1, help="parallel processes")
     p.add_argument("--split", choices=("train", "test"), default="train",

@@ -12,7 +12,7 @@ from tqdm import tqdm
 
 from relight_core.data.dataset import is_finished, write_frame, write_manifest, write_meta
 from relight_core.data.files import srgb_encode
-from relight_core.data.render import SceneRenderer, init_mitsuba
+from relight_core.data.render import SceneRenderer, init_mitsuba, stratified_spp
 from relight_core.data.scenes import SPLITS, SceneSpec, camera_to_world, probe_yaw, sample_scene
 
 
@@ -56,7 +56,7 @@ def render_scene(spec: SceneSpec, size: int, spp: int, out_dir: Path) -> None:
     write_meta(out_dir, {
         "kind": "synthetic", "frames": spec.frames, "height": size, "width": size, "lights": 2,
         "motion": list(spec.motion), "probes": [p.source for p in spec.probes],
-        "render": {"renderer": "mitsuba3", "spp": spp, "max_depth": 3},
+        "render": {"renderer": "mitsuba3", "spp": stratified_spp(spp), "max_depth": 3},
         "camera_to_world": [camera_to_world(spec, t).round(6).tolist() for t in range(spec.frames)],
         "probe_yaw": [[round(probe_yaw(spec, light, t), 6) for t in range(spec.frames)] for light in (0, 1)],
         "scene": asdict(spec),

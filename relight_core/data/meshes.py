@@ -104,6 +104,10 @@ def _normalise(mesh: pv.PolyData) -> TriangleMesh:
     vertices = np.asarray(surface.points, np.float32)
     faces = np.asarray(surface.faces, np.int64).reshape(-1, 4)[:, 1:].astype(np.int32)
     normals = np.asarray(surface.point_data["Normals"], np.float32)
+    corners = vertices[faces]  # [M, 3 corners, 3]
+    signed_volume = np.einsum("ij,ij->", corners[:, 0], np.cross(corners[:, 1], corners[:, 2])) / 6
+    if signed_volume < 0:  # some sources (VTK's text) wind inwards: turn the surface outwards
+        faces, normals = faces[:, ::-1].copy(), -normals
     centre = vertices.mean(axis=0)
     rel = vertices - centre
     rel /= np.linalg.norm(rel, axis=1, keepdims=True) + 1e-8
