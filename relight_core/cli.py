@@ -13,7 +13,9 @@ import sys
 import tempfile
 from pathlib import Path
 
+from relight_core.data.cli import add_data_commands
 from relight_core.errors import InputError
+from relight_core.training.cli import add_training_commands
 
 EXIT_USER_ERROR = 2
 
@@ -100,12 +102,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--tokenizer", required=True, type=Path, help="the Cosmos-Tokenize1-CV8x8x8-720p folder")
     p.add_argument("--out", required=True, type=Path, help="model folder to write (then use --model OUT)")
 
-    try:
-        from relight_core.data.cli import add_data_commands
-    except ImportError:  # the data engine's optional renderer dependencies are missing
-        add_data_commands = None
-    if add_data_commands is not None:
-        add_data_commands(sub)
+    add_data_commands(sub)
+    add_training_commands(sub)
     return parser
 
 
