@@ -98,8 +98,9 @@ def render_dataset(config: RenderConfig, progress: bool = True) -> Path:
                 bar.update(1)
     bar.close()
     if todo and progress:
-        frames = len(todo) * config.frames * 2
+        images = len(todo) * config.frames * 2  # one image per frame and light
         wall = time.time() - start
-        print(f"rendered {len(todo)} scenes, {frames} frames in {wall:.1f} s: {frames / wall:.2f} frames/s "
-              f"({cpu_seconds / frames:.2f} CPU-s per frame incl. albedo and probes)")
+        print(f"rendered {len(todo)} scenes = {images} images (frame × light) in {wall:.1f} s: "
+              f"{images / wall:.2f} images/s, {cpu_seconds / images:.2f} CPU-s per image "
+              "incl. albedo, mask and camera-frame probe")
     return write_manifest(split_dir)
