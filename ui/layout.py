@@ -137,12 +137,12 @@ def build_demo(studio: Studio, examples_dir: Path | None = None) -> gr.Blocks:
 
         probe_gallery.select(studio.probe_picked, None, [probe_name, probe_file], queue=False, api_visibility="private")
         preview_inputs = [probe_name, probe_file, rotation, exposure, mode]
-        for component in (probe_name, probe_file, exposure, mode):
-            component.change(studio.light_preview, preview_inputs, light_preview, trigger_mode="always_last",
-                             concurrency_limit=2, concurrency_id="preview", api_visibility="private")
         # Renders follow the slider while it moves; "always_last" drops stale positions.
         rotation.change(studio.light_preview, preview_inputs, light_preview, trigger_mode="always_last",
                         concurrency_limit=2, concurrency_id="preview", api_name="light_preview")
+        for component in (probe_name, probe_file, exposure, mode):
+            component.change(studio.light_preview, preview_inputs, light_preview, trigger_mode="always_last",
+                             concurrency_id="preview", api_visibility="private")
         demo.load(studio.light_preview, preview_inputs, light_preview, api_visibility="private")
 
         run_outputs = [status, out_input, out_relit, out_albedo, vid_input, vid_relit, vid_albedo, compare,
