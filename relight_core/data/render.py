@@ -18,7 +18,6 @@ import math
 import os
 import tempfile
 import warnings
-from pathlib import Path
 
 import cv2
 import numpy as np
@@ -106,7 +105,7 @@ class SceneRenderer:
         """Remove the temporary mesh files."""
         self._tmp.cleanup()
 
-    def __enter__(self) -> "SceneRenderer":
+    def __enter__(self) -> SceneRenderer:
         return self
 
     def __exit__(self, *exc) -> None:
