@@ -24,7 +24,7 @@ def add_data_commands(subparsers) -> None:
     p = subparsers.add_parser("render-data", help="path-trace synthetic multi-illumination training data")
     p.add_argument("--out", required=True, type=Path, help="dataset folder (scenes go to OUT/SPLIT/)")
     p.add_argument("--scenes", type=_positive, default=100, help="number of scenes")
-    p.add_argument("--frames", type=_positive, default=9, help="frames per scene (1 = images)")
+    p.add_argument("--frames", type=_positive, default=9, help="frames per scene; the tokenizer takes 1 + 8k (1 = images, 9, 17, ...)")
     p.add_argument("--size", type=_positive, default=128, help="frame side in pixels")
     p.add_argument("--spp", type=_positive, default=64, help="samples per pixel (rounded up to a square, k×k stratified)")
     p.add_argument("--seed", type=int, default=0, help="dataset seed: same seed, same files")
