@@ -24,6 +24,8 @@ CSS = """
 .run-status.stopped .run-bar > div { background: var(--neutral-400); }
 .run-text { margin-top: 6px; font-size: 0.9em; white-space: nowrap; overflow: hidden; text-overflow: ellipsis; }
 #light-preview img { object-fit: contain; }
+#out-input img, #out-relit img, #out-albedo img, #input-preview img {
+  width: 100%; height: 100%; object-fit: contain; }
 """
 
 THEME = gr.themes.Soft(primary_hue="orange", neutral_hue="slate")

@@ -74,9 +74,13 @@ def status_html(fraction: float, text: str, state: str = "running") -> str:
             f'</div><div class="run-text">{text}</div></div>')
 
 
-def _fail(exc: Exception) -> gr.Error:
-    """A user-facing error toast carrying the core's one-sentence message."""
-    return gr.Error(str(exc), print_exception=False)
+def _fail(exc: Exception, *paths: str | Path | None) -> gr.Error:
+    """A user-facing error toast with the core's one-sentence message, server paths cut to file names."""
+    message = str(exc)
+    for path in paths:
+        if path:
+            message = message.replace(str(path), Path(path).name)
+    return gr.Error(message, print_exception=False)
 
 
 class Studio:
@@ -138,7 +142,7 @@ class Studio:
                         gr.update(maximum=last, value=0), gr.update(maximum=last, value=default_end), text)
             loaded = media.load_media(path)
         except InputError as exc:
-            raise _fail(exc) from exc
+            raise _fail(exc, path) from exc
         shown = self._job_dir("inputs") / "input.png"
         media.save_image(shown, loaded.frames[0])
         height, width = loaded.frames.shape[1:3]
@@ -193,7 +197,7 @@ class Studio:
         try:
             probe = self.probes.load(path)
         except InputError as exc:
-            raise _fail(exc) from exc
+            raise _fail(exc, path) from exc
         return preview.render_preview(probe, float(rotation), intensity=2.0 ** float(exposure))
 
     # -- run ------------------------------------------------------------------------------------
@@ -215,7 +219,7 @@ class Studio:
                                  (float(sweep_start), float(sweep_end)), int(num_seeds), frame_start,
                                  frame_end, int(size), int(steps), sampler, int(seed), float(guidance), model)
         except InputError as exc:
-            raise _fail(exc) from exc
+            raise _fail(exc, path, probe_upload) from exc
         finally:
             # Gradio has copied every yielded file into its own cache by now.
             shutil.rmtree(job, ignore_errors=True)
