@@ -82,7 +82,7 @@ def run_job(client: Client, **args) -> list[tuple]:
 
 def test_relight_streams_previews_then_final_files(studio):
     client, tmp = studio
-    updates = run_job(client, **relight_args(scene_image(tmp / "scene.png")))
+    updates = run_job(client, **relight_args(REPO / "examples" / "inputs" / "objects.png"))
     # Output order: status, input, relit, albedo, input video, relit video, albedo video, compare,
     # seeds, downloads.
     previews = [u for u in updates if u[2] and "preview" in Path(u[2]).name]
@@ -95,7 +95,7 @@ def test_relight_streams_previews_then_final_files(studio):
     for path in downloads:
         assert path.is_file()
         if path.suffix == ".png":
-            assert Image.open(path).size == (64, 48)  # long side 64, both sides multiples of 16
+            assert Image.open(path).size == (64, 48)  # 256×192 → long side 64, sides multiples of 16
         else:
             with OpenEXR.File(str(path)) as exr:
                 pixels = next(iter(exr.channels().values())).pixels
@@ -104,6 +104,25 @@ def test_relight_streams_previews_then_final_files(studio):
     assert relit.shape == (48, 64, 3)
     before, after = final[7]
     assert Path(before).is_file() and Path(after).is_file()
+
+
+def test_video_streams_chunks_and_keeps_fps(studio):
+    client, tmp = studio
+    # 25 frames: the tiny model's 17-frame chunks with a 9-frame overlap make two chunks.
+    still = media.load_media(REPO / "examples" / "inputs" / "objects.png").frames[0]
+    clip = tmp / "pan.mp4"
+    media.save_video(clip, np.stack([np.roll(still, 4 * t, axis=1) for t in range(25)]), 12.0)
+    shown = [plain(v) for v in client.predict(handle_file(str(clip)), api_name="/inspect_input")]
+    assert "25 frames" in shown[-1]  # the info line
+    updates = run_job(client, **relight_args(clip, frame_start=0, frame_end=24, size=64))
+    partial = [u for u in updates[:-1] if u[5] and "relit-part0" in str(u[5])]
+    assert partial, "the first chunk's video should appear before the job finishes"
+    final = updates[-1]
+    assert "Done" in final[0]
+    relit_video = final[5]["video"] if isinstance(final[5], dict) else final[5]
+    relit = media.load_media(relit_video)
+    assert relit.is_video and relit.frames.shape == (25, 48, 64, 3) and relit.fps == pytest.approx(12.0)
+    assert sorted(Path(p).suffix for p in final[9]) == [".mp4", ".mp4"]
 
 
 def test_same_seed_reproduces_a_random_illumination(studio):

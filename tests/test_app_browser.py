@@ -21,7 +21,7 @@ pytestmark = pytest.mark.skipif(CHROMIUM is None, reason="Debian's chromium is n
 
 @pytest.fixture(scope="module")
 def app_url(tmp_path_factory):
-    demo, url, _ = start_studio(tmp_path_factory.mktemp("browser"))
+    demo, url, _ = start_studio(tmp_path_factory.mktemp("browser"), examples_dir=REPO / "examples")
     yield url
     demo.close()
 
@@ -80,6 +80,7 @@ def test_upload_pick_rotate_run(browser, app_url, tmp_path):
     page.wait_for_function("() => document.querySelector('#status').innerText.includes('Done')")
     assert image_src(page, "out-relit") and image_src(page, "out-albedo")
     assert page.locator("#downloads a").count() == 3
+    page.wait_for_function("() => !document.querySelector('#light-preview').innerText.includes('processing')")
     page.screenshot(path=str(SCREENSHOTS / "studio-1280x800.png"), full_page=True)
     assert error_toasts(page) == []
 
@@ -116,4 +117,18 @@ def test_bad_upload_shows_a_readable_error_and_the_page_keeps_working(browser, a
     page.wait_for_selector("#input-preview img")
     page.locator("#run").click()
     page.wait_for_function("() => document.querySelector('#status').innerText.includes('Done')")
+    page.close()
+
+
+def test_examples_show_cached_results_instantly(browser, app_url):
+    page = browser.new_page(viewport={"width": 1280, "height": 800})
+    page.set_default_timeout(TIMEOUT_MS)
+    page.goto(app_url)
+    page.wait_for_selector("#run")
+    page.get_by_text("Objects under a sunset").first.click()
+    page.wait_for_function("() => document.querySelector('#status').innerText.includes('Cached example')",
+                           timeout=10_000)
+    assert image_src(page, "out-relit") and image_src(page, "out-albedo")
+    assert page.locator("#probe-name input").input_value() == "sunset"
+    assert error_toasts(page) == []
     page.close()

@@ -180,7 +180,7 @@ def _examples(studio: Studio, examples_dir: Path, input_file, probe_name, rotati
     manifest["root"] = str(examples_dir)
     rows = [[str(examples_dir / e["input"]), e["probe"], e["rotation"], e["mode"], e["name"]]
             for e in manifest["examples"]]
-    example_name = gr.Textbox(visible=False)
+    example_name = gr.Textbox(visible=False, label="Example")
     gr.Examples(rows, [input_file, probe_name, rotation, mode, example_name],
                 outputs, fn=lambda *values: studio.show_example(manifest, values[-1]),
                 run_on_click=True, cache_examples=False, label="Examples (results cached on disk)")
