@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import socket
+import time
 from pathlib import Path
 
 import httpx
@@ -144,6 +145,34 @@ def test_light_preview_endpoint_changes_with_rotation(studio):
     assert np.abs(np.asarray(Image.open(a), np.int16) - np.asarray(Image.open(b), np.int16)).mean() > 2
 
 
+@pytest.mark.parametrize("mode", ["Albedo only", "Render from albedo"])
+def test_other_modes_and_an_uploaded_probe(studio, mode):
+    client, _ = studio
+    probe = handle_file(str(REPO / "envmaps" / "sunset.exr"))
+    final = run_job(client, **relight_args(REPO / "examples" / "inputs" / "objects.png", mode=mode,
+                                           probe_upload=probe))[-1]
+    assert "Done" in final[0]
+    assert np.asarray(Image.open(final[2])).shape == (48, 64, 3)
+    assert np.asarray(Image.open(final[3])).shape == (48, 64, 3)
+
+
+def test_stop_cancels_a_running_job_and_the_next_one_runs(studio):
+    client, _ = studio
+    image = REPO / "examples" / "inputs" / "objects.png"
+    job = client.submit(**relight_args(image, steps=1000, size=128), api_name="/relight")  # minutes of work
+    previews = 0
+    for update in job:
+        previews += plain(update[2]) is not None  # a step preview arrived: the job is sampling
+        if previews >= 2:
+            break
+    stopped_at = time.monotonic()
+    client.predict(api_name="/stop")
+    # The worker stops at its next step, so the next job does not wait behind 1000 steps.
+    assert "Done" in run_job(client, **relight_args(image))[-1][0]
+    assert time.monotonic() - stopped_at < 30
+    assert job.done() and not any("Done" in str(plain(u[0])) for u in job.outputs())
+
+
 def write_bad_inputs(tmp: Path) -> dict[str, Path]:
     corrupt = tmp / "corrupt.png"
     corrupt.write_bytes(b"\x89PNG\r\n\x1a\n" + b"not really a picture" * 20)
@@ -187,6 +216,30 @@ def test_inspect_input_reports_corrupt_files(studio):
     bad = write_bad_inputs(tmp)
     with pytest.raises(Exception, match="fake.mp4"):
         client.predict(handle_file(str(bad["fake_video"])), api_name="/inspect_input")
+
+
+def test_command_line_options():
+    from app import parse_args
+
+    options = parse_args(["--model", "tiny", "--port", "9000", "--auth", "ann:pa:ss", "--share", "--no-browser"])
+    assert (options.model, options.port, options.auth, options.share, options.inbrowser) == \
+        ("tiny", 9000, ("ann", "pa:ss"), True, False)
+    defaults = parse_args([])
+    assert (defaults.model, defaults.host, defaults.inbrowser, defaults.auth) == ("default", "127.0.0.1", True, None)
+    with pytest.raises(SystemExit):
+        parse_args(["--auth", "nopassword"])
+
+
+def test_auth_protects_the_app(tmp_path):
+    demo, url, _ = start_studio(tmp_path, auth=("ann", "secret"))
+    try:
+        assert httpx.get(f"{url}config").status_code == 401
+        client = Client(url, auth=("ann", "secret"), verbose=False)
+        assert client.predict("studio", None, 10.0, 0.0, "Relight", api_name="/light_preview")
+        with pytest.raises(Exception):
+            Client(url, auth=("ann", "wrong"), verbose=False)
+    finally:
+        demo.close()
 
 
 def test_share_falls_back_to_local_when_the_tunnel_is_unreachable(tmp_path, capsys, monkeypatch):
