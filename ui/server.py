@@ -70,16 +70,17 @@ def start(options: ServerOptions, block: bool = True):
 
     share = options.share
     if share and not share_server_reachable(options.share_timeout_s):
-        print("\n* Could not reach the Gradio share server, so there is no public link "
-              "(is this machine offline?). The studio keeps serving locally.\n", flush=True)
+        print("* Could not reach the Gradio share server, so there is no public link "
+              "(is this machine offline?). The studio keeps serving locally.", flush=True)
         share = False
     _, local_url, share_url = demo.launch(
         server_name=options.host, server_port=options.port, share=share, auth=options.auth,
         inbrowser=options.inbrowser, max_file_size=f"{options.max_upload_mb}mb",
         allowed_paths=[str(root), str(options.examples_dir)], prevent_thread_lock=True,
-        show_error=True, footer_links=["api", "settings"], **launch_kwargs())
+        show_error=True, footer_links=["api", "settings"], quiet=True, **launch_kwargs())
+    print(f"* UniRelight Studio is running at {local_url} (model: {options.model}; Ctrl+C to stop)", flush=True)
     if share and share_url is None:
-        print("\n* The share link could not be created; the studio keeps serving locally.\n", flush=True)
+        print("* The share link could not be created; the studio keeps serving locally.", flush=True)
     if share_url:
         print(f"* Public share link for reviewers: {share_url}", flush=True)
     if block:
