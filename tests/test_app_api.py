@@ -143,6 +143,9 @@ def test_light_preview_endpoint_changes_with_rotation(studio):
     a = client.predict("studio", None, 0.0, 0.0, "Relight", api_name="/light_preview")
     b = client.predict("studio", None, 90.0, 0.0, "Relight", api_name="/light_preview")
     assert np.abs(np.asarray(Image.open(a), np.int16) - np.asarray(Image.open(b), np.int16)).mean() > 2
+    # With the light sweeping across a clip, the preview shows frame 0: the sweep's start angle.
+    swept = client.predict("studio", None, 0.0, 0.0, "Relight", True, 90.0, api_name="/light_preview")
+    np.testing.assert_array_equal(np.asarray(Image.open(swept)), np.asarray(Image.open(b)))
 
 
 @pytest.mark.parametrize("mode", ["Albedo only", "Render from albedo"])

@@ -121,7 +121,6 @@ def build_demo(studio: Studio, examples_dir: Path | None = None) -> gr.Blocks:
                        seeds_gallery, downloads])
 
         # ------------------------------------------------------------------ events
-        input_file.upload(studio.check_upload, input_file, None, queue=False, api_visibility="private")
         input_file.change(studio.input_changed, input_file,
                           [input_image, input_video, frame_row, frame_start, frame_end, input_info],
                           api_name="inspect_input")
@@ -138,11 +137,11 @@ def build_demo(studio: Studio, examples_dir: Path | None = None) -> gr.Blocks:
                             api_visibility="private")
 
         probe_gallery.select(studio.probe_picked, None, [probe_name, probe_file], queue=False, api_visibility="private")
-        preview_inputs = [probe_name, probe_file, rotation, exposure, mode]
+        preview_inputs = [probe_name, probe_file, rotation, exposure, mode, rotate_light, sweep_start]
         # Renders follow the slider while it moves; "always_last" drops stale positions.
         rotation.change(studio.light_preview, preview_inputs, light_preview, trigger_mode="always_last",
                         concurrency_limit=2, concurrency_id="preview", api_name="light_preview")
-        for component in (probe_name, probe_file, exposure, mode):
+        for component in (probe_name, probe_file, exposure, mode, rotate_light, sweep_start):
             component.change(studio.light_preview, preview_inputs, light_preview, trigger_mode="always_last",
                              concurrency_id="preview", api_visibility="private")
         demo.load(studio.light_preview, preview_inputs, light_preview, api_visibility="private")

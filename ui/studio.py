@@ -187,10 +187,13 @@ class Studio:
         return None
 
     def light_preview(self, name: str | None, upload: str | None, rotation: float, exposure: float,
-                      mode: str):
+                      mode: str, rotate_light: bool = False, sweep_start: float = 0.0):
         """The sphere + panorama preview of the probe at this rotation and exposure."""
         if mode in ("Albedo only", RANDOM_MODE):
             return None
+        if rotate_light:
+            # The pipeline's sweep gives frame 0 the sweep's start angle, not the slider's.
+            rotation = sweep_start
         path = self.probe_path(name, upload)
         if path is None:
             return None
