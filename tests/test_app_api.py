@@ -118,6 +118,8 @@ def test_video_streams_chunks_and_keeps_fps(studio):
     updates = run_job(client, **relight_args(clip, frame_start=0, frame_end=24, size=64))
     partial = [u for u in updates[:-1] if u[5] and "relit-part0" in str(u[5])]
     assert partial, "the first chunk's video should appear before the job finishes"
+    first = partial[0][5]["video"] if isinstance(partial[0][5], dict) else partial[0][5]
+    assert media.load_media(first).frames.shape[0] == 17  # exactly the first chunk's frames
     final = updates[-1]
     assert "Done" in final[0]
     relit_video = final[5]["video"] if isinstance(final[5], dict) else final[5]

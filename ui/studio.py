@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import shutil
 import threading
+import time
 import uuid
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -235,6 +236,7 @@ class Studio:
     def _run(self, job: Path, stop: threading.Event, path, mode, probe_name, probe_upload, rotation,
              intensity, rotate_light, sweep, num_seeds, frame_start, frame_end, size, steps, sampler, seed,
              guidance, model) -> Iterator[tuple]:
+        started = time.monotonic()
         relighter = self.relighter(model)
         loaded = self._load_media(path, frame_start, frame_end, size)
         frames = loaded.frames
@@ -250,10 +252,11 @@ class Studio:
         is_video = loaded.is_video
 
         audio = (loaded.audio_path, loaded.audio_start)
-        input_file = self._save(job, "input", frames, loaded.fps, audio, is_video)
-        yield RunOutputs(status=status_html(0.0, "Starting…"),
-                         input_image=None if is_video else input_file,
-                         input_video=input_file if is_video else None,
+        # The still beside Relit and Albedo is the frame their stills show (a video's middle one).
+        middle = frames.shape[0] // 2
+        input_still = self._save(job, "input", frames[middle:middle + 1], None, audio, False)
+        input_clip = self._save(job, "input", frames, loaded.fps, audio, True) if is_video else None
+        yield RunOutputs(status=status_html(0.0, "Starting…"), input_image=input_still, input_video=input_clip,
                          relit_image=CLEAR, albedo_image=CLEAR, relit_video=CLEAR, albedo_video=CLEAR,
                          compare=CLEAR, downloads=CLEAR, seeds=[] if mode == "random" else None).values()
 
@@ -265,7 +268,7 @@ class Studio:
                 rotation=rotation, rotate_light=rotate_light, sweep=sweep, intensity=intensity,
                 albedo=frames if mode == "render" else None, steps=steps, sampler=sampler, seed=run_seed,
                 guidance=guidance, should_stop=stop.is_set)
-            chunks_relit: list[np.ndarray] = []
+            relit_so_far = np.zeros((0, *frames.shape[1:]), np.float32)  # finished chunks, stitched
             result = None
             for event in relighter.run(request):
                 if isinstance(event, Progress):
@@ -277,9 +280,10 @@ class Studio:
                         albedo_image=self._save_preview(job, "albedo-preview", event.albedo_preview),
                     ).values()
                 elif isinstance(event, ChunkDone) and is_video and event.num_chunks > 1:
-                    chunks_relit.append(event.relit)
-                    partial = self._save(job, f"relit-part{event.chunk}", np.concatenate(chunks_relit),
-                                         loaded.fps, (None, 0.0), True)
+                    # Chunks overlap: each one replaces the frames from its start on.
+                    relit_so_far = np.concatenate([relit_so_far[:event.start], event.relit])
+                    partial = self._save(job, f"relit-part{event.chunk}", relit_so_far, loaded.fps,
+                                         (None, 0.0), True)
                     yield RunOutputs(relit_video=partial).values()
                 elif isinstance(event, Finished):
                     result = event.result
@@ -293,12 +297,12 @@ class Studio:
                 gallery.append((files["relit_still"], f"seed {run_seed}"))
             yield RunOutputs(
                 status=status_html((run_index + 1) / len(seeds),
-                                   f"Done in {_duration(result.seconds)}." if run_index + 1 == len(seeds)
+                                   f"Done in {_duration(time.monotonic() - started)}." if run_index + 1 == len(seeds)
                                    else f"Seed {run_seed} done.", "done" if run_index + 1 == len(seeds)
                                    else "running"),
                 relit_image=files["relit_still"], albedo_image=files["albedo_still"],
                 relit_video=files.get("relit_video"), albedo_video=files.get("albedo_video"),
-                compare=None if is_video else (input_file, files["relit_still"]),
+                compare=None if is_video else (input_still, files["relit_still"]),
                 seeds=list(gallery) if mode == "random" else None,
                 downloads=list(downloads),
             ).values()
