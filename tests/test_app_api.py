@@ -105,6 +105,7 @@ def test_relight_streams_previews_then_final_files(studio):
     assert relit.shape == (48, 64, 3)
     before, after = final[7]
     assert Path(before).is_file() and Path(after).is_file()
+    assert list((tmp / "studio" / "work" / "jobs").iterdir()) == []  # the job's own files are gone
 
 
 def test_video_streams_chunks_and_keeps_fps(studio):

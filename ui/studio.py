@@ -327,8 +327,15 @@ class Studio:
 
     # -- files ----------------------------------------------------------------------------------
 
-    def _job_dir(self, kind: str) -> Path:
-        path = self.work_dir / kind / uuid.uuid4().hex
+    def _job_dir(self, kind: str, keep_s: float = 3600.0) -> Path:
+        """A fresh folder under work_dir/kind; folders there older than keep_s are removed."""
+        parent = self.work_dir / kind
+        if parent.is_dir():
+            now = time.time()
+            for old in parent.iterdir():
+                if now - old.stat().st_mtime > keep_s:
+                    shutil.rmtree(old, ignore_errors=True)
+        path = parent / uuid.uuid4().hex
         path.mkdir(parents=True)
         return path
 
