@@ -9,7 +9,7 @@ import gradio as gr
 
 from relight_core.diffusion import SAMPLERS
 from relight_core.lighting import DEFAULT_ROTATION
-from ui.studio import MODES, RANDOM_MODE, Studio, probe_choices, status_html
+from ui.studio import MODES, RANDOM_MODE, VIDEO_SUFFIXES, Studio, probe_choices, status_html
 
 INPUT_TYPES = [".png", ".jpg", ".jpeg", ".webp", ".exr", ".mp4", ".mov", ".webm"]
 PROBE_TYPES = [".hdr", ".exr"]
@@ -163,8 +163,6 @@ def launch_kwargs() -> dict:
 
 
 def _show_video_row(path: str | None):
-    from ui.studio import VIDEO_SUFFIXES
-
     return gr.update(visible=bool(path) and Path(path).suffix.lower() in VIDEO_SUFFIXES)
 
 

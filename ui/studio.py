@@ -23,7 +23,6 @@ from relight_core.pipeline import ChunkDone, Finished, Progress, Relighter, Reli
 from ui.probes import ProbeLibrary
 
 VIDEO_SUFFIXES = (".mp4", ".mov", ".webm", ".mkv", ".avi", ".m4v")
-IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".webp", ".exr", ".hdr", ".bmp", ".tif", ".tiff")
 
 MODES = {  # label shown in the UI → pipeline mode
     "Relight": "relight",
