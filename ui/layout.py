@@ -24,6 +24,7 @@ CSS = """
 .run-status.stopped .run-bar > div { background: var(--neutral-400); }
 .run-text { margin-top: 6px; font-size: 0.9em; white-space: nowrap; overflow: hidden; text-overflow: ellipsis; }
 #light-preview img { object-fit: contain; }
+#light-caption { font-size: 0.85em; padding: 0 8px; }
 #out-input img, #out-relit img, #out-albedo img, #input-preview img {
   width: 100%; height: 100%; object-fit: contain; }
 """
@@ -78,9 +79,11 @@ def build_demo(studio: Studio, examples_dir: Path | None = None) -> gr.Blocks:
                     with gr.Row(visible=False) as sweep_row:
                         sweep_start = gr.Number(0, label="Sweep from (degrees)")
                         sweep_end = gr.Number(360, label="Sweep to (degrees)")
-                    light_preview = gr.Image(label="Light preview: mirror ball · diffuse ball · panorama "
-                                             "(+ marks where the camera looks)", interactive=False, height=300,
+                    light_preview = gr.Image(label="Light preview", interactive=False, height=300,
                                              elem_id="light-preview", buttons=[], format="png")
+                    gr.Markdown("A mirror ball and a matte ball lit by the probe as the model receives it; "
+                                "below, the light all around the camera (the + marks where it looks).",
+                                elem_id="light-caption")
 
                 with gr.Accordion("Advanced", open=False):
                     steps = gr.Slider(1, 100, value=spec.steps, step=1, label="Sampling steps")
