@@ -197,7 +197,7 @@ class Relighter:
         sampler_name = request.sampler or self.spec.sampler
         num_frames, height, width = frames.shape[:3]
         chunks = plan_chunks(num_frames, self.spec.chunk_frames, self.spec.overlap_frames)
-        rotations = self._rotations(request, num_frames)
+        rotations = lighting.frame_rotations(num_frames, request.rotation, request.rotate_light, request.sweep)
         probe = self._prepared_probe(request)
         sigmas = get_sigmas_karras(steps, sigma_min=0.002, sigma_max=80.0).to(self.device)
         evals_per_chunk = steps + 1 if request.guidance == 0 else 2 * (steps + 1)
@@ -295,11 +295,6 @@ class Relighter:
         if not math.isfinite(request.intensity) or request.intensity <= 0:
             raise InputError(f"Intensity must be a positive number, not {request.intensity}.")
         return np.clip(frames, 0.0, 1.0)
-
-    def _rotations(self, request: RelightRequest, num_frames: int) -> list[float]:
-        if request.rotate_light:
-            return [float(r) for r in lighting.rotation_sweep(num_frames, *request.sweep)]
-        return [float(request.rotation)] * num_frames
 
     def _prepared_probe(self, request: RelightRequest) -> torch.Tensor | None:
         if request.probe is None or request.mode in ("albedo", "random"):

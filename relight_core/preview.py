@@ -220,12 +220,6 @@ def render_preview(probe: torch.Tensor, rotation: float = lighting.DEFAULT_ROTAT
     return np.concatenate([balls, strip], axis=0)
 
 
-def display_to_linear(frame: np.ndarray) -> np.ndarray:
-    """Undo the sRGB encoding of display frames [...,3] in [0,1] (for the linear EXR download)."""
-    x = np.clip(np.asarray(frame, dtype=np.float32), 0.0, 1.0)
-    return np.where(x <= 0.04045, x / 12.92, ((x + 0.055) / 1.055) ** 2.4).astype(np.float32)
-
-
 def ball_pixel_direction(row: float, col: float, size: int, margin: float = PreviewConfig.margin) -> np.ndarray:
     """The mirror direction seen at pixel (row, col) of a mirror ball rendered at `size` (for tests)."""
     x = (col + 0.5 - size / 2) / (size / 2) * margin

@@ -332,3 +332,10 @@ def test_tonemap_display():
     probe = torch.tensor([[[0.0, 16.0, 1000.0]]])
     assert tonemap_display(probe).tolist() == [[[0, 255, 255]]]
     assert tonemap_display(probe).dtype == np.uint8
+
+
+def test_frame_rotations_offset_the_sweep_by_the_chosen_yaw():
+    from relight_core.lighting import frame_rotations
+    assert frame_rotations(3, 30.0) == [30.0, 30.0, 30.0]
+    assert frame_rotations(3, 30.0, rotate_light=True) == [30.0, 210.0, 390.0]
+    assert frame_rotations(2, 0.0, rotate_light=True, sweep=(90.0, 180.0)) == [90.0, 180.0]

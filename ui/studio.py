@@ -17,7 +17,7 @@ from pathlib import Path
 import gradio as gr
 import numpy as np
 
-from relight_core import media, preview
+from relight_core import lighting, media, preview
 from relight_core.errors import InputError
 from relight_core.pipeline import ChunkDone, Finished, Progress, Relighter, RelightRequest
 from ui.probes import ProbeLibrary
@@ -191,9 +191,8 @@ class Studio:
         """The sphere + panorama preview of the probe at this rotation and exposure."""
         if mode in ("Albedo only", RANDOM_MODE):
             return None
-        if rotate_light:
-            # The pipeline's sweep gives frame 0 the sweep's start angle, not the slider's.
-            rotation = sweep_start
+        # What the first frame gets (lighting.frame_rotations: the slider's yaw plus the sweep's start).
+        rotation = lighting.frame_rotations(1, float(rotation), bool(rotate_light), (float(sweep_start), 0.0))[0]
         path = self.probe_path(name, upload)
         if path is None:
             return None
@@ -381,7 +380,7 @@ class Studio:
             files["downloads"] = [files["relit_video"], files["albedo_video"]]
         else:
             exr = job / f"relit{suffix}-linear.exr"
-            media.save_exr(exr, preview.display_to_linear(result.relit[0]))
+            media.save_exr(exr, media.srgb_to_linear(result.relit[0]))
             files["downloads"] = [files["relit_still"], files["albedo_still"], str(exr)]
         return files
 

@@ -9,6 +9,7 @@ from relight_core.lighting.balls import diffuse_ball, mirror_ball, mirror_ball_t
 from relight_core.lighting.panorama import (
     DEFAULT_ROTATION,
     direction_to_uv,
+    frame_rotations,
     latlong_directions,
     panorama_directions,
     probe_frames,
@@ -43,6 +44,7 @@ __all__ = [
     "clean_hdr",
     "diffuse_ball",
     "direction_to_uv",
+    "frame_rotations",
     "encode_lighting",
     "env_ldr",
     "env_log",

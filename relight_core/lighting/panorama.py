@@ -126,6 +126,13 @@ def rotation_sweep(num_frames: int, start: float = 0.0, end: float = 360.0) -> l
     return [float(a) for a in np.linspace(start, end, num_frames)]
 
 
+def frame_rotations(num_frames: int, rotation: float = DEFAULT_ROTATION, rotate_light: bool = False,
+                    sweep: tuple[float, float] = (0.0, 360.0)) -> list[float]:
+    """The yaw of each frame: `rotation`, plus the sweep angle of that frame when the light rotates."""
+    angles = rotation_sweep(num_frames, *sweep) if rotate_light else [0.0] * num_frames
+    return [float(rotation) + angle for angle in angles]
+
+
 def _camera_rotation(cam_to_world) -> torch.Tensor:
     if cam_to_world is None:
         return torch.eye(3)
@@ -164,10 +171,9 @@ def probe_frames(
     per_frame_camera = cams.dim() == 3
     if not rotate_light and not per_frame_camera:
         return probe_in_camera(probe, H, W, rotation, cams).expand(T, H, W, 3).contiguous()
-    angles = rotation_sweep(T, *sweep) if rotate_light else [0.0] * T
     fixed_uv = None if per_frame_camera else _camera_uv(H, W, cams)
     frames = torch.empty(T, H, W, 3)
-    for t, angle in enumerate(angles):
+    for t, yaw in enumerate(frame_rotations(T, rotation, rotate_light, sweep)):
         uv = _camera_uv(H, W, cams[t]) if per_frame_camera else fixed_uv
-        frames[t] = _sample_uv(probe, _yawed(uv, rotation + angle))
+        frames[t] = _sample_uv(probe, _yawed(uv, yaw))
     return frames
