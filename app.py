@@ -25,6 +25,8 @@ def parse_args(argv: list[str] | None = None) -> ServerOptions:
     parser.add_argument("--share", action="store_true", help="create a public share link for reviewers")
     parser.add_argument("--share-timeout", type=float, default=5.0,
                         help="seconds to try reaching the share server before serving locally only")
+    parser.add_argument("--model-choice", choices=("on", "off"), default=None,
+                        help="let visitors load another model folder (default: on only for a local-only server)")
     parser.add_argument("--auth", default=None, metavar="USER:PASS", help="protect the app with a login")
     parser.add_argument("--no-browser", action="store_true", help="do not open a browser tab")
     parser.add_argument("--max-upload-mb", type=int, default=500, help="largest accepted upload, in MB")
@@ -42,7 +44,8 @@ def parse_args(argv: list[str] | None = None) -> ServerOptions:
     return ServerOptions(host=args.host, port=args.port, model=args.model, share=args.share,
                          share_timeout_s=args.share_timeout, auth=auth, inbrowser=not args.no_browser,
                          max_upload_mb=args.max_upload_mb, queue_size=args.queue_size,
-                         concurrency=args.concurrency, temp_dir=args.temp_dir)
+                         concurrency=args.concurrency, temp_dir=args.temp_dir,
+                         model_choice=None if args.model_choice is None else args.model_choice == "on")
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -90,7 +90,8 @@ def build_demo(studio: Studio, examples_dir: Path | None = None) -> gr.Blocks:
                     sampler = gr.Dropdown(list(SAMPLERS), value=spec.sampler, label="Sampler")
                     seed = gr.Number(0, precision=0, label="Seed (the same seed gives the same result)")
                     guidance = gr.Slider(0, 10, value=0, step=0.5, label="Guidance (0 = off, fastest)")
-                    model = gr.Textbox(studio.config.model, label="Model: 'default', a preset, or a model folder")
+                    model = gr.Textbox(studio.config.model, label="Model: 'default', a preset, or a model folder",
+                                       interactive=studio.config.model_choice)
 
             # ------------------------------------------------------------------ results
             with gr.Column(scale=7, min_width=340):

@@ -29,6 +29,15 @@ class ServerOptions:
     temp_dir: Path | None = None          # None: a fresh folder under the system temp, removed at exit
     envmaps_dir: Path = REPO_ROOT / "envmaps"
     examples_dir: Path = REPO_ROOT / "examples"
+    model_choice: bool | None = None      # may visitors load another model? None: only on a local-only server
+
+    @property
+    def visitors_choose_model(self) -> bool:
+        """Whether the Advanced "Model" box is open: by default not behind a share link or a LAN address,
+        where strangers could make the server load arbitrary folders."""
+        if self.model_choice is not None:
+            return self.model_choice
+        return not self.share and self.host in ("127.0.0.1", "localhost", "::1")
 
 
 def prepare_environment(temp_dir: Path | None) -> Path:
@@ -64,7 +73,8 @@ def start(options: ServerOptions, block: bool = True):
     from ui.studio import Studio, StudioConfig
 
     studio = Studio(StudioConfig(model=options.model, envmaps_dir=options.envmaps_dir,
-                                 work_dir=root / "work", max_upload_mb=options.max_upload_mb))
+                                 work_dir=root / "work", max_upload_mb=options.max_upload_mb,
+                                 model_choice=options.visitors_choose_model))
     demo = build_demo(studio, options.examples_dir)
     demo.queue(max_size=options.queue_size, default_concurrency_limit=options.concurrency)
 

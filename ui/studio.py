@@ -43,6 +43,7 @@ class StudioConfig:
     work_dir: Path = Path("studio-work")  # per-job outputs, deleted once Gradio has copied them
     max_upload_mb: int = 500            # larger uploads are refused with a message
     max_seeds: int = 8                  # random illumination: at most this many seeds per run
+    model_choice: bool = True           # may requests name another model than `model`?
 
 
 @dataclass(frozen=True)
@@ -101,6 +102,8 @@ class Studio:
     def relighter(self, model: str | None = None) -> Relighter:
         """The loaded model for `model` (one kept in memory at a time)."""
         model = (model or "").strip() or self.config.model
+        if model != self.config.model and not self.config.model_choice:
+            raise InputError("This studio serves a fixed model; restart it with --model to use another one.")
         with self._model_lock:
             if model not in self._relighters:
                 self._relighters.clear()  # free the previous model before loading the next
