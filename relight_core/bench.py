@@ -56,9 +56,9 @@ def count_evaluations(steps: int, guidance: float) -> int:
 
 
 def dit_forward(preset: str, frames: int, size: int = 256, repeats: int = 3) -> dict:
-    """Time one bf16-autocast forward of a preset's DiT on a [input | relit | albedo] clip."""
+    """Time one forward (bf16 weights, bf16 autocast) of a preset's DiT on a [input | relit | albedo] clip."""
     spec = MODEL_PRESETS[preset]
-    model = JointDiT(spec.dit).eval()
+    model = JointDiT(spec.dit).eval().to(torch.bfloat16)  # as the Relighter runs it
     t = 1 + (frames - 1) // 8
     h = w = size // 8
     x = torch.randn(1, CHANNELS["padding_mask"].stop, 3 * t, h, w)
