@@ -31,6 +31,7 @@ import torch
 
 from relight_core import lighting
 from relight_core.checkpoint import ModelSpec, load_model
+from relight_core.chunking import crossfade_weights, pad_to_valid, plan_chunks, stitch
 from relight_core.diffusion import SAMPLERS, ConditionedDenoiser, EDMPrecond, get_sigmas_karras, guided
 from relight_core.dit import assemble_inputs
 from relight_core.errors import InputError
@@ -110,35 +111,6 @@ class Finished:
 
 
 Event = Progress | ChunkDone | Finished
-
-
-# ---------------------------------------------------------------------------------------------
-# Chunking
-# ---------------------------------------------------------------------------------------------
-
-def plan_chunks(num_frames: int, chunk: int, overlap: int) -> list[tuple[int, int]]:
-    """(start, length) of each chunk; lengths are `chunk`, except a short video's single chunk."""
-    if num_frames <= chunk:
-        return [(0, num_frames)]
-    stride = chunk - overlap
-    starts = list(range(0, num_frames - chunk + 1, stride))
-    if starts[-1] + chunk < num_frames:
-        starts.append(num_frames - chunk)  # the last chunk ends flush with the video
-    return [(s, chunk) for s in starts]
-
-
-def pad_to_valid(frames: np.ndarray, temporal_factor: int) -> np.ndarray:
-    """Repeat the last frame until the count is 1 + k·temporal_factor (a causal tokenizer's rule)."""
-    t = frames.shape[0]
-    valid = 1 + math.ceil((t - 1) / temporal_factor) * temporal_factor
-    if valid == t:
-        return frames
-    return np.concatenate([frames, np.repeat(frames[-1:], valid - t, axis=0)], axis=0)
-
-
-def crossfade_weights(overlap: int) -> np.ndarray:
-    """Weights of the new chunk over the shared frames, rising strictly inside (0, 1)."""
-    return (np.arange(1, overlap + 1, dtype=np.float32) / (overlap + 1))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -252,8 +224,8 @@ class Relighter:
                 return
             relit_chunk, albedo_chunk = self._decode(x0, t, length)
             weights = crossfade_weights(overlap[0].shape[0]) if overlap is not None else None
-            self._stitch(relit_out, relit_chunk, start, weights)
-            self._stitch(albedo_out, albedo_chunk, start, weights)
+            stitch(relit_out, relit_chunk, start, weights)
+            stitch(albedo_out, albedo_chunk, start, weights)
             previous = (start, relit_chunk, albedo_chunk)
             yield ChunkDone(index, len(chunks), start, relit_chunk, albedo_chunk)
 
@@ -394,16 +366,6 @@ class Relighter:
             video = self.tokenizer.decode(both).float()
         frames = ((video.clamp(-1, 1) + 1) / 2).permute(0, 2, 3, 4, 1).cpu().numpy()
         return frames[0, :length], frames[1, :length]
-
-    @staticmethod
-    def _stitch(out: np.ndarray, chunk: np.ndarray, start: int, weights: np.ndarray | None) -> None:
-        if weights is None:
-            out[start:start + chunk.shape[0]] = chunk
-            return
-        k = weights.shape[0]
-        w = weights[:, None, None, None]
-        out[start:start + k] = (1 - w) * out[start:start + k] + w * chunk[:k]
-        out[start + k:start + chunk.shape[0]] = chunk[k:]
 
     def _preview(self, x0: torch.Tensor, t: int, height: int, width: int) -> tuple[np.ndarray, np.ndarray]:
         """Cheap preview: a fitted linear map latent → RGB on the first latent frame of each clip."""

@@ -7,8 +7,8 @@ import pytest
 import torch
 
 from relight_core.errors import InputError
-from relight_core.pipeline import (ChunkDone, Finished, Progress, Relighter, RelightRequest, crossfade_weights,
-                                   pad_to_valid, plan_chunks)
+from relight_core.chunking import crossfade_weights, pad_to_valid, plan_chunks, stitch
+from relight_core.pipeline import ChunkDone, Finished, Progress, Relighter, RelightRequest
 
 
 def _awake(relighter):
@@ -74,8 +74,8 @@ def test_crossfade_weights_rise_inside_the_unit_interval():
 
 def test_stitch_blends_the_shared_frames():
     out = np.zeros((10, 1, 1, 3), np.float32)
-    Relighter._stitch(out, np.zeros((6, 1, 1, 3), np.float32), 0, None)
-    Relighter._stitch(out, np.ones((6, 1, 1, 3), np.float32), 4, crossfade_weights(2))
+    stitch(out, np.zeros((6, 1, 1, 3), np.float32), 0, None)
+    stitch(out, np.ones((6, 1, 1, 3), np.float32), 4, crossfade_weights(2))
     np.testing.assert_allclose(out[:, 0, 0, 0], [0, 0, 0, 0, 1 / 3, 2 / 3, 1, 1, 1, 1], atol=1e-6)
 
 
