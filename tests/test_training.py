@@ -191,7 +191,7 @@ def test_loss_decreases_on_a_fixed_batch(dataset_root, tokenizer_weights, tmp_pa
         optimizer.zero_grad()
         loss.backward()
         optimizer.step()
-        losses.append(float(loss))
+        losses.append(float(loss.detach()))
     assert losses[-1] < 0.5 * losses[0]
 
 

@@ -1,8 +1,8 @@
 """Training the small causal video tokenizer on every stream the DiT will ever encode.
 
 The tokenizer must encode rendered RGB, albedo and the three lighting encodings (env_ldr, env_log,
-env_dir — all in [-1, 1]), as 9-frame clips and as single images. Steps alternate between a batch
-of clips and a larger batch of images; each crop is a random window of one stream of one
+env_dir — all in [-1, 1]), as 9-frame clips and as single images. Each step is, at random, a batch of
+clips or a larger batch of images; each crop is a random window of one stream of one
 sample (the network is convolutional, so crops train it as well as full frames, for less).
 """
 
@@ -137,7 +137,7 @@ def train_tokenizer(config: TokenizerTrainConfig, progress: bool = True) -> Path
 
     while step < config.steps and not clock.out_of_time():
         generator = step_generator(config.seed, step)
-        is_image = step % 2 == 1
+        is_image = bool(torch.rand(1, generator=generator) < 0.5)
         dataset = images if is_image else videos
         dataset.set_epoch(step)
         video = tokenizer_batch(dataset, config.image_batch if is_image else config.clip_batch,

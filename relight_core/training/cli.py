@@ -50,6 +50,8 @@ def add_training_commands(subparsers) -> None:
     p.add_argument("--video-batch", type=_positive, default=4)
     p.add_argument("--image-batch", type=_positive, default=8)
     p.add_argument("--weight-decay", type=float, default=0.01)
+    p.add_argument("--ema-decay", type=float, default=0.999, help="EMA decay (the EMA is what gets exported)")
+    p.add_argument("--warmup", type=int, default=200, help="linear learning-rate warm-up steps")
     p.add_argument("--val-every", type=_positive, default=250)
     p.add_argument("--cache", type=Path, default=Path("cache/latents"), help="latent cache folder")
     p.add_argument("--export", type=Path, default=None, help="write the EMA model folder here at the end")
@@ -94,7 +96,8 @@ def _train(args) -> int:
     config = DiTTrainConfig(data=args.data, run=args.run, tokenizer=args.tokenizer,
                             tokenizer_preset=args.tokenizer_preset, preset=args.preset, steps=args.steps,
                             minutes=args.minutes, video_batch=args.video_batch, image_batch=args.image_batch,
-                            lr=args.lr, weight_decay=args.weight_decay, val_every=args.val_every,
+                            lr=args.lr, weight_decay=args.weight_decay, ema_decay=args.ema_decay,
+                            warmup=args.warmup, val_every=args.val_every,
                             checkpoint_minutes=args.checkpoint_minutes, seed=args.seed, cache=args.cache,
                             export=args.export)
     command = "python -m relight_core " + " ".join(shlex.quote(a) for a in sys.argv[1:])

@@ -168,12 +168,12 @@ def train_dit(config: DiTTrainConfig, progress: bool = True, command: str | None
         optimizer.step()
         ema.update(dit, step)
         step += 1
-        last["loss"] = float(loss)
+        last["loss"] = float(loss.detach())
         if step % config.log_every == 0:
-            log.write(step=step, loss=float(loss), kind="image" if is_image else "video", lr=lr,
+            log.write(step=step, loss=last["loss"], kind="image" if is_image else "video", lr=lr,
                       grad_norm=float(grad_norm), seconds=round(clock.elapsed(), 1), **counts)
             if progress:
-                print(f"dit step {step}: loss {float(loss):.4f} ({clock.elapsed():.0f}s)", flush=True)
+                print(f"dit step {step}: loss {last['loss']:.4f} ({clock.elapsed():.0f}s)", flush=True)
         if val_latents is not None and step % config.val_every == 0:
             validate()
         if clock.checkpoint_due():
