@@ -124,13 +124,16 @@ class RMSNorm(nn.Module):
         return F.rms_norm(x.float(), x.shape[-1:], self.weight.float(), self.eps).to(x.dtype)
 
 
-def layer_norm(x: torch.Tensor) -> torch.Tensor:
-    """Affine-free LayerNorm (eps 1e-6) in fp32; the modulation supplies scale and shift."""
-    return F.layer_norm(x.float(), x.shape[-1:], eps=1e-6).to(x.dtype)
+def modulated_layer_norm(x: torch.Tensor, shift: torch.Tensor, scale: torch.Tensor) -> torch.Tensor:
+    """Affine-free LayerNorm (eps 1e-6), then x·(1 + scale) + shift; x [B, L, D], shift/scale [B, D].
 
-
-def modulate(x: torch.Tensor, shift: torch.Tensor, scale: torch.Tensor) -> torch.Tensor:
-    return torch.addcmul(shift.unsqueeze(1), x, 1 + scale.unsqueeze(1))   # x·(1 + scale) + shift
+    LayerNorm runs on x's own dtype: its kernel keeps the statistics in fp32 even for bf16. With one
+    sample the modulation is the LayerNorm's affine, so the whole thing is a single pass.
+    """
+    if x.shape[0] == 1:
+        return F.layer_norm(x, x.shape[-1:], (1 + scale[0]).to(x.dtype), shift[0].to(x.dtype), eps=1e-6)
+    normed = F.layer_norm(x, x.shape[-1:], eps=1e-6)
+    return torch.addcmul(shift.unsqueeze(1), normed, 1 + scale.unsqueeze(1))   # (B, L, D)
 
 
 class TimestepEmbedder(nn.Module):
@@ -175,14 +178,23 @@ def rope_angles(head_dim: int, t: int, h: int, w: int, extrapolation=(1.0, 1.0, 
     return torch.cat([half, half], dim=-1).reshape(t * h * w, head_dim).float()
 
 
-def apply_rope(x: torch.Tensor, cos: torch.Tensor, sin: torch.Tensor) -> torch.Tensor:
-    """Rotate dims i and i + hd/2 by the same angle (non-interleaved, as transformer_engine), in fp32.
+def rms_norm_rope(x: torch.Tensor, weight: torch.Tensor, cos: torch.Tensor, sin: torch.Tensor,
+                  eps: float = 1e-6) -> torch.Tensor:
+    """RoPE(RMSNorm(x)) for x [B, heads, L, hd] in few passes; returns a contiguous [B, heads, L, hd].
 
-    `cos`, `sin` hold the first half of the angles (the second half repeats it), e.g. [L, 1, hd/2]
-    against x [B, L, heads, hd].
+    The rotation turns dims i and i + hd/2 by the same angle (non-interleaved, as transformer_engine);
+    `cos`, `sin` [L, hd/2] hold the first half of the angles (the second half repeats it). The norm's
+    weight is folded into the [L, hd] rotation tables, and since a rotation keeps the vector's length
+    the RMS scale (statistics in fp32) is applied last.
     """
-    x1, x2 = x.float().chunk(2, dim=-1)
-    return torch.cat([x1 * cos - x2 * sin, x2 * cos + x1 * sin], dim=-1).to(x.dtype)
+    half = x.shape[-1] // 2
+    w1, w2 = weight.float().chunk(2)
+    cos_w = torch.cat([cos * w1, cos * w2], dim=-1).to(x.dtype)                  # (L, hd)
+    sin_w = torch.cat([-sin * w2, sin * w1], dim=-1).to(x.dtype)                 # (L, hd)
+    rms = torch.linalg.vector_norm(x, dim=-1, keepdim=True, dtype=torch.float32)  # (B, heads, L, 1)
+    inv_rms = torch.rsqrt(rms.square() / x.shape[-1] + eps).to(x.dtype)
+    swapped = torch.cat([x[..., half:], x[..., :half]], dim=-1)                 # (B, heads, L, hd)
+    return torch.addcmul(swapped * sin_w, x, cos_w) * inv_rms                    # (B, heads, L, hd)
 
 
 #################################################################################
@@ -205,17 +217,19 @@ class Attention(nn.Module):
         self.out_proj = nn.Linear(width, width, bias=False)
 
     def heads(self, x: torch.Tensor) -> torch.Tensor:
-        return x.unflatten(-1, (self.num_heads, -1))                           # (B, L, heads, hd)
+        return x.unflatten(-1, (self.num_heads, -1)).transpose(1, 2)           # (B, heads, L, hd)
 
     def forward(self, x: torch.Tensor, context: torch.Tensor | None = None,
                 rope: tuple[torch.Tensor, torch.Tensor] | None = None) -> torch.Tensor:
         source = x if context is None else context                             # (B, L or M, ·)
-        q = self.q_norm(self.heads(self.q_proj(x)))                            # (B, L, heads, hd)
-        k = self.k_norm(self.heads(self.k_proj(source)))                       # (B, L|M, heads, hd)
-        v = self.heads(self.v_proj(source))                                    # (B, L|M, heads, hd)
+        q, k = self.heads(self.q_proj(x)), self.heads(self.k_proj(source))     # (B, heads, L|M, hd)
         if rope is not None:
-            q, k = apply_rope(q, *rope), apply_rope(k, *rope)
-        out = F.scaled_dot_product_attention(q.transpose(1, 2), k.transpose(1, 2), v.transpose(1, 2))
+            q = rms_norm_rope(q, self.q_norm.weight, *rope, self.q_norm.eps)
+            k = rms_norm_rope(k, self.k_norm.weight, *rope, self.k_norm.eps)
+        else:
+            q, k = self.q_norm(q), self.k_norm(k)
+        v = self.heads(self.v_proj(source))                                    # (B, heads, L|M, hd)
+        out = F.scaled_dot_product_attention(q, k, v)                          # (B, heads, L, hd)
         return self.out_proj(out.transpose(1, 2).flatten(2))                   # (B, L, D)
 
 
@@ -226,7 +240,7 @@ class MLP(nn.Module):
         self.fc2 = nn.Linear(hidden, width, bias=False)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return self.fc2(F.gelu(self.fc1(x)))
+        return self.fc2(F.gelu(self.fc1(x)))                                   # exact (erf) GELU, as released
 
 
 class AdaLNModulation(nn.Module):
@@ -261,15 +275,15 @@ class JointDiTBlock(nn.Module):
 
     def forward(self, x, emb, adaln_lora, rope, context=None):
         shift, scale, gate = self.self_attn_mod(emb, adaln_lora)                      # 3 × (B, D)
-        h = self.self_attn(modulate(layer_norm(x), shift, scale), rope=rope)          # (B, L, D)
+        h = self.self_attn(modulated_layer_norm(x, shift, scale), rope=rope)          # (B, L, D)
         x = torch.addcmul(x, gate.unsqueeze(1), h)                                    # x + gate·h
         # A zero context gives exactly zero cross-attention (no biases, RMSNorm(0) = 0): skip it.
         if self.cross_attn is not None and context is not None:
             shift, scale, gate = self.cross_attn_mod(emb, adaln_lora)                 # 3 × (B, D)
-            h = self.cross_attn(modulate(layer_norm(x), shift, scale), context)       # (B, L, D)
+            h = self.cross_attn(modulated_layer_norm(x, shift, scale), context)       # (B, L, D)
             x = torch.addcmul(x, gate.unsqueeze(1), h)
         shift, scale, gate = self.mlp_mod(emb, adaln_lora)                            # 3 × (B, D)
-        h = self.mlp(modulate(layer_norm(x), shift, scale))                           # (B, L, D)
+        h = self.mlp(modulated_layer_norm(x, shift, scale))                           # (B, L, D)
         return torch.addcmul(x, gate.unsqueeze(1), h)                                 # (B, L, D)
 
 
@@ -284,7 +298,7 @@ class FinalLayer(nn.Module):
 
     def forward(self, x, emb, adaln_lora):
         shift, scale = self.modulation(emb, adaln_lora)                                # 2 × (B, D)
-        return self.linear(modulate(layer_norm(x), shift, scale))                      # (B, L, p·p·pt·C)
+        return self.linear(modulated_layer_norm(x, shift, scale))                      # (B, L, p·p·pt·C)
 
 
 class JointDiT(nn.Module):
@@ -346,10 +360,10 @@ class JointDiT(nn.Module):
         return x.reshape(b, c, t, h, w)
 
     def rope(self, t: int, h: int, w: int, device) -> tuple[torch.Tensor, torch.Tensor]:
-        """cos, sin [3·t·h·w, 1, hd/2] in token units: one clip's 3D RoPE, repeated for each clip."""
+        """cos, sin [3·t·h·w, hd/2] in token units: one clip's 3D RoPE, repeated for each clip."""
         c = self.config
         angles = rope_angles(c.head_dim, t, h, w, c.rope_extrapolation, c.rope_theta, device)  # (thw, hd)
-        angles = angles[:, None, :c.head_dim // 2].repeat(NUM_CLIPS, 1, 1)  # (3·thw, 1, hd/2)
+        angles = angles[:, :c.head_dim // 2].repeat(NUM_CLIPS, 1)          # (3·thw, hd/2)
         return angles.cos(), angles.sin()                                  # broadcast over heads
 
     def forward(self, x: torch.Tensor, c_noise: torch.Tensor, context: torch.Tensor | None = None

@@ -4,12 +4,13 @@ import dataclasses
 
 import pytest
 import torch
+import torch.nn.functional as F
 from safetensors.torch import load_file, save_file
 
 from relight_core.dit import (
     ASSEMBLED_CHANNELS, CHANNELS, DIT_PRESETS, LIGHTING_CHANNELS, TOKEN_CHANNELS, DiTConfig, JointDiT,
-    apply_rope, assemble_inputs, convert_released_state_dict, pack_lighting, param_count,
-    released_to_ours, rope_angles,
+    assemble_inputs, convert_released_state_dict, pack_lighting, param_count, released_to_ours,
+    rms_norm_rope, rope_angles,
 )
 
 TINY = DIT_PRESETS["tiny"]
@@ -27,6 +28,48 @@ def randomised(model: JointDiT, seed: int = 0) -> JointDiT:
     for p in model.parameters():
         p.copy_(torch.randn(p.shape, generator=generator) * 0.2)
     return model
+
+
+def reference_rms_norm(x: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
+    """Plain fp32 RMSNorm over the last dim, eps 1e-6."""
+    x = x.float()
+    return x * torch.rsqrt(x.pow(2).mean(-1, keepdim=True) + 1e-6) * weight.float()
+
+
+def reference_rope(x: torch.Tensor, cos: torch.Tensor, sin: torch.Tensor) -> torch.Tensor:
+    """Plain fp32 rotation of dims i and i + hd/2 by the half-angle tables cos, sin (broadcast to x)."""
+    x1, x2 = x.float().chunk(2, dim=-1)
+    return torch.cat([x1 * cos - x2 * sin, x2 * cos + x1 * sin], dim=-1)
+
+
+def reference_forward(model: JointDiT, x: torch.Tensor, c_noise: torch.Tensor) -> torch.Tensor:
+    """The DiT forward written out plainly in fp32 (no fused ops), from the model's own parameters."""
+    c = model.config
+    _, _, frames, h, w = x.shape
+    heads, p = c.num_heads, c.patch_spatial
+    tokens = model.patch_embed(model.patchify(model.embed_inputs(x)))             # (B, L, D)
+    cos, sin = model.rope(frames // 3, h // p, w // p, "cpu")                      # (L, hd/2)
+    cos, sin = cos[:, None], sin[:, None]                                         # (L, 1, hd/2)
+    emb, lora = model.t_embedder(c_noise)
+
+    def modulated(x, shift, scale):
+        return F.layer_norm(x, x.shape[-1:], eps=1e-6) * (1 + scale[:, None]) + shift[:, None]
+
+    for block in model.blocks:
+        attn = block.self_attn
+        shift, scale, gate = block.self_attn_mod(emb, lora)
+        a = modulated(tokens, shift, scale)
+        q = reference_rope(reference_rms_norm(attn.q_proj(a).unflatten(-1, (heads, -1)), attn.q_norm.weight), cos, sin)
+        k = reference_rope(reference_rms_norm(attn.k_proj(a).unflatten(-1, (heads, -1)), attn.k_norm.weight), cos, sin)
+        v = attn.v_proj(a).unflatten(-1, (heads, -1))
+        out = F.scaled_dot_product_attention(q.transpose(1, 2), k.transpose(1, 2), v.transpose(1, 2))
+        tokens = tokens + gate[:, None] * attn.out_proj(out.transpose(1, 2).flatten(2))
+        shift, scale, gate = block.mlp_mod(emb, lora)
+        hidden = F.gelu(block.mlp.fc1(modulated(tokens, shift, scale)))
+        tokens = tokens + gate[:, None] * block.mlp.fc2(hidden)
+    shift, scale = model.final_layer.modulation(emb, lora)
+    out = model.final_layer.linear(modulated(tokens, shift, scale))
+    return model.unpatchify(out, frames, h, w)
 
 
 # ---------------------------------------------------------------- token layout
@@ -114,7 +157,7 @@ def test_rope_repeats_per_clip_and_separates_positions():
     t, h, w = 2, 3, 4
     cos, sin = model.rope(t, h, w, "cpu")
     per_clip = t * h * w
-    assert cos.shape == (3 * per_clip, 1, TINY.head_dim // 2)
+    assert cos.shape == (3 * per_clip, TINY.head_dim // 2)
     for clip in (1, 2):
         assert torch.equal(cos[clip * per_clip:(clip + 1) * per_clip], cos[:per_clip])
         assert torch.equal(sin[clip * per_clip:(clip + 1) * per_clip], sin[:per_clip])
@@ -122,20 +165,30 @@ def test_rope_repeats_per_clip_and_separates_positions():
     assert torch.unique(positions, dim=0).shape[0] == per_clip   # every (t, h, w) differs
 
 
-def test_apply_rope_matches_rotate_half_form_on_full_angles():
+def test_rms_norm_rope_matches_norm_then_rotate_half_on_full_angles():
     angles = rope_angles(128, t=2, h=3, w=2)                     # (12, 128)
-    x = torch.randn(2, 4, 12, 128)
-    x1, x2 = x.chunk(2, dim=-1)
-    full = x * angles.cos() + torch.cat([-x2, x1], dim=-1) * angles.sin()   # transformer_engine form
+    weight = 1 + 0.3 * torch.randn(128)
+    x = torch.randn(2, 12, 4, 128).transpose(1, 2)              # (B, heads, L, hd), strided like the model's
+    normed = reference_rms_norm(x, weight)
+    n1, n2 = normed.chunk(2, dim=-1)
+    full = normed * angles.cos() + torch.cat([-n2, n1], dim=-1) * angles.sin()   # transformer_engine form
     half = angles[:, :64]
-    torch.testing.assert_close(apply_rope(x, half.cos(), half.sin()), full)
+    out = rms_norm_rope(x, weight, half.cos(), half.sin())
+    assert out.is_contiguous()                                  # the layout attention reads fastest
+    torch.testing.assert_close(out, full, rtol=1e-5, atol=1e-5)
+    torch.testing.assert_close(out, reference_rope(normed, half.cos(), half.sin()), rtol=1e-5, atol=1e-5)
+    bf16 = rms_norm_rope(x.bfloat16(), weight.bfloat16(), half.cos(), half.sin())
+    assert bf16.dtype == torch.bfloat16
+    torch.testing.assert_close(bf16.float(), full, rtol=0.02, atol=0.03)
 
 
 def test_attention_depends_only_on_relative_position_within_and_across_clips():
     # Shifting every clip's content by one latent frame leaves RoPE attention logits unchanged.
-    cos, sin = JointDiT(TINY).rope(1, 1, 5, "cpu")
-    q, k = torch.randn(2, TINY.head_dim), torch.randn(2, TINY.head_dim)
-    logit = lambda i, j: (apply_rope(q[0], cos[i], sin[i]) * apply_rope(k[0], cos[j], sin[j])).sum()
+    cos, sin = JointDiT(TINY).rope(1, 1, 5, "cpu")              # (15, hd/2): 3 clips × 5 positions
+    ones = torch.ones(TINY.head_dim)
+    q, k = (rms_norm_rope(torch.randn(TINY.head_dim).expand(1, 1, 15, -1), ones, cos, sin)[0, 0]
+            for _ in range(2))                                   # one vector at every position
+    logit = lambda i, j: (q[i] * k[j]).sum()
     assert float(logit(1, 3)) == pytest.approx(float(logit(2, 4)), rel=1e-5)
     assert float(logit(1, 6)) == pytest.approx(float(logit(1, 1)), rel=1e-5)   # same spot, next clip
 
@@ -149,6 +202,20 @@ def test_tiny_forward_shape(t):
     out = model(torch.randn(2, 69, 3 * t, 4, 6), torch.randn(2))
     assert out.shape == (2, 16, 3 * t, 4, 6)
     assert torch.isfinite(out).all()
+
+
+@pytest.mark.parametrize("batch,t", [(1, 1), (2, 3)])
+def test_forward_matches_plain_reference(batch, t):
+    model = randomised(JointDiT(TINY))
+    x, c_noise = torch.randn(batch, 69, 3 * t, 4, 6), torch.randn(batch)
+    reference = reference_forward(model, x, c_noise)
+    torch.testing.assert_close(model(x, c_noise), reference, rtol=1e-5, atol=1e-5)
+    # bf16 weights under bf16 autocast, as the Relighter runs it, against the same weights in fp32
+    half = model.to(torch.bfloat16)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        fast = half(x, c_noise).float()
+    reference = reference_forward(half.float(), x, c_noise)
+    assert float((fast - reference).norm() / reference.norm()) < 0.02
 
 
 def test_output_is_zero_at_initialisation_and_blocks_start_as_identity():
