@@ -188,9 +188,10 @@ def rms_norm_rope(x: torch.Tensor, weight: torch.Tensor, cos: torch.Tensor, sin:
     the RMS scale (statistics in fp32) is applied last.
     """
     half = x.shape[-1] // 2
-    w1, w2 = weight.float().chunk(2)
-    cos_w = torch.cat([cos * w1, cos * w2], dim=-1).to(x.dtype)                  # (L, hd)
-    sin_w = torch.cat([-sin * w2, sin * w1], dim=-1).to(x.dtype)                 # (L, hd)
+    w = weight.float()
+    w_swapped = torch.cat([-w[half:], w[:half]])                                # weight of the swapped dims
+    cos_w = (cos.unsqueeze(-2) * w.view(2, half)).flatten(-2).to(x.dtype)         # (L, hd)
+    sin_w = (sin.unsqueeze(-2) * w_swapped.view(2, half)).flatten(-2).to(x.dtype)  # (L, hd)
     rms = torch.linalg.vector_norm(x, dim=-1, keepdim=True, dtype=torch.float32)  # (B, heads, L, 1)
     inv_rms = torch.rsqrt(rms.square() / x.shape[-1] + eps).to(x.dtype)
     swapped = torch.cat([x[..., half:], x[..., :half]], dim=-1)                 # (B, heads, L, hd)
