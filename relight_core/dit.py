@@ -193,6 +193,7 @@ def rms_norm_rope(x: torch.Tensor, weight: torch.Tensor, cos: torch.Tensor, sin:
     cos_w = (cos.unsqueeze(-2) * w.view(2, half)).flatten(-2).to(x.dtype)         # (L, hd)
     sin_w = (sin.unsqueeze(-2) * w_swapped.view(2, half)).flatten(-2).to(x.dtype)  # (L, hd)
     rms = torch.linalg.vector_norm(x, dim=-1, keepdim=True, dtype=torch.float32)  # (B, heads, L, 1)
+    # Tables and scale in x's dtype: a mixed bf16·fp32 op on CPU would first copy x to fp32.
     inv_rms = torch.rsqrt(rms.square() / x.shape[-1] + eps).to(x.dtype)
     swapped = torch.cat([x[..., half:], x[..., :half]], dim=-1)                 # (B, heads, L, hd)
     return torch.addcmul(swapped * sin_w, x, cos_w) * inv_rms                    # (B, heads, L, hd)
