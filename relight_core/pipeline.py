@@ -129,7 +129,7 @@ class Relighter:
         self.denoiser = EDMPrecond(self._network)
         self._latent_cache: OrderedDict[str, torch.Tensor] = OrderedDict()
         self._preview_matrix: torch.Tensor | None = None
-        self._seconds_per_eval: float | None = None
+        self._flops_per_second: float | None = None  # measured on the last run
 
     @classmethod
     def load(cls, model: str = "default", device: str | torch.device | None = None) -> "Relighter":
@@ -231,7 +231,9 @@ class Relighter:
 
         seconds = time.perf_counter() - started
         if evals_done:
-            self._seconds_per_eval = (time.perf_counter() - eval_started) / evals_done
+            tokens = CLIPS * t * (height // self.frame_multiple) * (width // self.frame_multiple)
+            elapsed = time.perf_counter() - eval_started
+            self._flops_per_second = evals_done * self._flops_per_eval(tokens) / elapsed
         yield Finished(RelightResult(relit_out, albedo_out, request.fps, request.audio_path, request.seed,
                                      request.mode, request.audio_start, seconds,
                                      {"chunks": len(chunks), "steps": steps, "sampler": sampler_name,
@@ -400,14 +402,15 @@ class Relighter:
             return torch.autocast(self.device.type, dtype=torch.bfloat16)
         return nullcontext()
 
-    def _seconds_per_eval_at(self, tokens: int) -> float:
-        """Seconds per denoiser evaluation; measured on the last run when available."""
-        if self._seconds_per_eval is not None:
-            return self._seconds_per_eval
-        # Unmeasured: assume a CPU doing ~200 GFLOP/s on 2·params·tokens + attention.
+    def _flops_per_eval(self, tokens: int) -> float:
+        """Network FLOPs of one evaluation: 2·params per token plus attention's 4·L²·D a block."""
         params = sum(p.numel() for p in self.dit.parameters())
-        flops = 2 * params * tokens + 4 * tokens * tokens * self.spec.dit.width * self.spec.dit.depth
-        return flops / 2e11
+        return 2 * params * tokens + 4 * tokens * tokens * self.spec.dit.width * self.spec.dit.depth
+
+    def _seconds_per_eval_at(self, tokens: int) -> float:
+        """Seconds per evaluation at `tokens`, from the throughput of the last run when there was one."""
+        throughput = self._flops_per_second or (2.5e11 if self.device.type == "cpu" else 2e14)
+        return self._flops_per_eval(tokens) / throughput
 
 
 class _Stopped(Exception):

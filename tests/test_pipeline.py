@@ -221,3 +221,11 @@ def test_estimate_seconds_grows_with_the_work(relighter):
     short = relighter.estimate_seconds(1, 64, 64, steps=10)
     long = relighter.estimate_seconds(60, 64, 64, steps=10)
     assert 0 < short < long
+
+
+def test_estimate_scales_with_size_after_a_measured_run(probe):
+    relighter = Relighter.load("tiny", device="cpu")
+    relighter.relight(RelightRequest(_frames(), probe=probe, steps=2))
+    small = relighter.estimate_seconds(1, 32, 48, steps=2)
+    large = relighter.estimate_seconds(1, 256, 384, steps=2)
+    assert relighter._flops_per_second > 0 and large > 10 * small
