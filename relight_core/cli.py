@@ -13,7 +13,7 @@ import sys
 import tempfile
 from pathlib import Path
 
-from relight_core.data.cli import add_data_commands
+from relight_core.data.cli import add_data_commands, positive_int
 from relight_core.errors import InputError
 from relight_core.training.cli import add_training_commands
 
@@ -49,10 +49,10 @@ def _frame_range(text: str) -> tuple[int, int | None]:
 def _add_model_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--model", default="default",
                    help="'default' (shipped small model), a preset (tiny, small, unirelight-7b) or a model folder")
-    p.add_argument("--steps", type=int, default=None, help="sampling steps (default: the model's)")
+    p.add_argument("--steps", type=positive_int, default=None, help="sampling steps (default: the model's)")
     p.add_argument("--sampler", default=None, help="res2ab (default), euler or heun")
     p.add_argument("--guidance", type=float, default=0.0, help="classifier-free guidance (0 = off, one pass)")
-    p.add_argument("--size", type=int, default=None, help="working resolution: long side in pixels")
+    p.add_argument("--size", type=positive_int, default=None, help="working resolution: long side in pixels")
     p.add_argument("--frames", type=_frame_range, default=(0, None), metavar="START:END",
                    help="frame range of a video (END exclusive)")
     p.add_argument("--device", default=None, help="cpu or cuda (default: cuda when available)")

@@ -9,7 +9,8 @@ from pathlib import Path
 from relight_core.errors import InputError
 
 
-def _positive(text: str) -> int:
+def positive_int(text: str) -> int:
+    """argparse type: a whole number ≥ 1, or one sentence saying what is wrong."""
     try:
         value = int(text)
     except ValueError:
@@ -23,12 +24,12 @@ def add_data_commands(subparsers) -> None:
     """Register `render-data` and `autolabel` on an argparse subparsers object (sets `func`)."""
     p = subparsers.add_parser("render-data", help="path-trace synthetic multi-illumination training data")
     p.add_argument("--out", required=True, type=Path, help="dataset folder (scenes go to OUT/SPLIT/)")
-    p.add_argument("--scenes", type=_positive, default=100, help="number of scenes")
-    p.add_argument("--frames", type=_positive, default=9, help="frames per scene; the tokenizer takes 1 + 8k (1 = images, 9, 17, ...)")
-    p.add_argument("--size", type=_positive, default=128, help="frame side in pixels")
-    p.add_argument("--spp", type=_positive, default=64, help="samples per pixel (rounded up to a square, k×k stratified)")
+    p.add_argument("--scenes", type=positive_int, default=100, help="number of scenes")
+    p.add_argument("--frames", type=positive_int, default=9, help="frames per scene; the tokenizer takes 1 + 8k (1 = images, 9, 17, ...)")
+    p.add_argument("--size", type=positive_int, default=128, help="frame side in pixels")
+    p.add_argument("--spp", type=positive_int, default=64, help="samples per pixel (rounded up to a square, k×k stratified)")
     p.add_argument("--seed", type=int, default=0, help="dataset seed: same seed, same files")
-    p.add_argument("--workers", type=_positive, default=os.cpu_count() or 1, help="parallel processes")
+    p.add_argument("--workers", type=positive_int, default=os.cpu_count() or 1, help="parallel processes")
     p.add_argument("--split", choices=("train", "test"), default="train",
                    help="test uses held-out probes, meshes and textures")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -39,9 +40,9 @@ def add_data_commands(subparsers) -> None:
     p.add_argument("--out", required=True, type=Path, help="dataset folder (samples go to OUT/SPLIT/)")
     p.add_argument("--split", default="real", help="split folder name")
     p.add_argument("--model", default="default", help="model to run in albedo mode")
-    p.add_argument("--size", type=_positive, default=None, help="working resolution (default: the model's)")
-    p.add_argument("--max-frames", type=_positive, default=None, help="cut each video to this many frames")
-    p.add_argument("--steps", type=_positive, default=None, help="sampling steps (default: the model's)")
+    p.add_argument("--size", type=positive_int, default=None, help="working resolution (default: the model's)")
+    p.add_argument("--max-frames", type=positive_int, default=None, help="cut each video to this many frames")
+    p.add_argument("--steps", type=positive_int, default=None, help="sampling steps (default: the model's)")
     p.add_argument("--device", default=None, help="cpu or cuda")
     p.set_defaults(func=_autolabel)
 

@@ -8,27 +8,18 @@ import shlex
 import sys
 from pathlib import Path
 
+from relight_core.data.cli import positive_int
 from relight_core.errors import InputError
-
-
-def _positive(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"'{text}' is not a whole number.") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"'{text}' must be at least 1.")
-    return value
 
 
 def _common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--data", required=True, type=Path, help="dataset root written by render-data (train/, test/)")
     p.add_argument("--run", required=True, type=Path, help="run folder (log.jsonl, ckpt/); an existing run resumes")
-    p.add_argument("--steps", type=_positive, default=100000, help="stop after this many steps")
+    p.add_argument("--steps", type=positive_int, default=100000, help="stop after this many steps")
     p.add_argument("--minutes", type=float, default=None, help="stop after this much wall time")
     p.add_argument("--lr", type=float, default=2e-4, help="peak learning rate")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--threads", type=_positive, default=None, help="torch CPU threads (default: all cores)")
+    p.add_argument("--threads", type=positive_int, default=None, help="torch CPU threads (default: all cores)")
     p.add_argument("--checkpoint-minutes", type=float, default=5.0, help="checkpoint cadence")
 
 
@@ -37,9 +28,9 @@ def add_training_commands(subparsers) -> None:
     p = subparsers.add_parser("train-tokenizer", help="train the small causal video tokenizer on a dataset")
     _common(p)
     p.add_argument("--preset", default="small", help="tokenizer preset (small, tiny)")
-    p.add_argument("--crop", type=_positive, default=64, help="random crop side in pixels")
-    p.add_argument("--clip-batch", type=_positive, default=4, help="clips per video step")
-    p.add_argument("--image-batch", type=_positive, default=16, help="images per image step")
+    p.add_argument("--crop", type=positive_int, default=64, help="random crop side in pixels")
+    p.add_argument("--clip-batch", type=positive_int, default=4, help="clips per video step")
+    p.add_argument("--image-batch", type=positive_int, default=16, help="images per image step")
     p.set_defaults(func=_train_tokenizer)
 
     p = subparsers.add_parser("train", help="train the joint relighting DiT on a trained tokenizer and export it")
@@ -47,12 +38,12 @@ def add_training_commands(subparsers) -> None:
     p.add_argument("--tokenizer", required=True, type=Path, help="tokenizer weights from train-tokenizer")
     p.add_argument("--tokenizer-preset", default="small")
     p.add_argument("--preset", default="small", help="model preset the DiT comes from (small, tiny)")
-    p.add_argument("--video-batch", type=_positive, default=4)
-    p.add_argument("--image-batch", type=_positive, default=8)
+    p.add_argument("--video-batch", type=positive_int, default=4)
+    p.add_argument("--image-batch", type=positive_int, default=8)
     p.add_argument("--weight-decay", type=float, default=0.01)
     p.add_argument("--ema-decay", type=float, default=0.999, help="EMA decay (the EMA is what gets exported)")
     p.add_argument("--warmup", type=int, default=200, help="linear learning-rate warm-up steps")
-    p.add_argument("--val-every", type=_positive, default=250)
+    p.add_argument("--val-every", type=positive_int, default=250)
     p.add_argument("--cache", type=Path, default=Path("cache/latents"), help="latent cache folder")
     p.add_argument("--export", type=Path, default=None, help="write the EMA model folder here at the end")
     p.set_defaults(func=_train)
