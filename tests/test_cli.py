@@ -104,3 +104,12 @@ def test_frame_range_of_a_video(files, tmp_path):
     with av.open(str(tmp_path / "albedo.mp4")) as container:
         assert sum(1 for _ in container.decode(video=0)) == 6
         assert len(container.streams.audio) == 1
+
+
+def test_an_output_folder_that_cannot_be_made_is_one_sentence(files, tmp_path, capsys):
+    blocker = tmp_path / "taken"
+    blocker.write_text("a file where the output folder should go")
+    code = main(["albedo", str(files["png"]), "--out", str(blocker / "out"), *FAST])
+    err = capsys.readouterr().err
+    assert code == 2 and "Traceback" not in err
+    assert [line for line in err.splitlines() if line.startswith("error: ")] == [err.splitlines()[-1]]
