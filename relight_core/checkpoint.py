@@ -23,6 +23,7 @@ from safetensors.torch import load_file, save_file
 
 from relight_core.dit import DIT_PRESETS, DiTConfig, JointDiT
 from relight_core.errors import InputError
+from relight_core.precision import check_precision
 from relight_core.tokenizer import build_tokenizer
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
@@ -44,8 +45,9 @@ class ModelSpec:
     size: int = 848                      # default working resolution (long side, pixels)
     steps: int = 35                      # default sampling steps
     sampler: str = "res2ab"              # default sampler
-    autocast_bf16: bool = True           # run the DiT and tokenizer under bf16 autocast
+    precision: str = "auto"              # compute precision: auto | fp32 | bf16 | fp16 (precision.py)
     trained: bool = True                 # False for a preset with random weights
+    lighting_size: int | None = None     # probes seen through a size² panorama (lighting.lowpass_panorama)
     notes: dict = field(default_factory=dict)
 
     def to_json(self) -> dict:
@@ -59,6 +61,10 @@ class ModelSpec:
         """Parse a config.json dict, ignoring keys this version does not know."""
         known = {f.name for f in dataclasses.fields(cls)}
         kwargs = {k: v for k, v in data.items() if k in known}
+        if "precision" not in data and "autocast_bf16" in data:
+            # Older folders: autocast on meant "the fast precision" (the hardware decides), off meant fp32.
+            kwargs["precision"] = "auto" if data["autocast_bf16"] else "fp32"
+        check_precision(kwargs.get("precision", "auto"))
         dit_fields = {f.name for f in dataclasses.fields(DiTConfig)}
         kwargs["dit"] = DiTConfig(**{k: _tuples(v) for k, v in data["dit"].items() if k in dit_fields})
         return cls(**kwargs)
@@ -86,12 +92,18 @@ MODEL_PRESETS: dict[str, ModelSpec] = {
 }
 
 
+def has_tokenizer_weights(spec: ModelSpec) -> bool:
+    """Whether the model folder holds tokenizer.safetensors (not for the Cosmos JIT files, nor for
+    the fixed pixel tokenizer, which has no weights)."""
+    return spec.tokenizer.get("type") not in ("cosmos-jit", "pixel")
+
+
 def save_model(directory: str | Path, spec: ModelSpec, dit: JointDiT, tokenizer) -> Path:
     """Write config.json and the safetensors weights of a model into `directory`."""
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
     save_file({k: v.contiguous() for k, v in dit.state_dict().items()}, directory / DIT_FILE)
-    if isinstance(tokenizer, torch.nn.Module) and spec.tokenizer.get("type") != "cosmos-jit":
+    if isinstance(tokenizer, torch.nn.Module) and has_tokenizer_weights(spec):
         state = {k: v.contiguous() for k, v in tokenizer.state_dict().items()}
         save_file(state, directory / TOKENIZER_FILE)
     (directory / CONFIG_FILE).write_text(json.dumps(spec.to_json(), indent=2))
@@ -125,8 +137,13 @@ def _read_spec(directory: Path) -> ModelSpec:
         raise InputError(f"{path} is not a valid model config ({exc}); re-export the model.") from exc
 
 
-def load_model(model: str | Path = "default", device: str | torch.device = "cpu"):
-    """Build (spec, dit, tokenizer) from a preset name or a model directory; eval mode."""
+def load_model(model: str | Path = "default", device: str | torch.device = "cpu",
+               dtype: torch.dtype = torch.float32):
+    """Build (spec, dit, tokenizer) from a preset name or a model directory; eval mode.
+
+    The DiT's weights come out in `dtype` whatever dtype they are stored in (the compute precision is
+    the caller's choice, see precision.py); the tokenizer's come out in fp32.
+    """
     spec, directory = resolve_model(model)
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(0)  # a preset's random weights are the same in every process
@@ -138,17 +155,22 @@ def load_model(model: str | Path = "default", device: str | torch.device = "cpu"
             # materialised twice (random init, then the loaded copy).
             with torch.device("meta"):
                 dit = JointDiT(spec.dit)
-            _load_state(dit, directory / DIT_FILE, device)
-    if directory is not None and spec.tokenizer.get("type") != "cosmos-jit":
+            _load_state(dit, directory / DIT_FILE, device, dtype)
+    if directory is not None and has_tokenizer_weights(spec):
         _load_state(tokenizer, directory / TOKENIZER_FILE, device)
-    dit.to(device).eval().requires_grad_(False)
+    dit.to(device, dtype).eval().requires_grad_(False)
     if isinstance(tokenizer, torch.nn.Module):
         tokenizer.to(device).eval().requires_grad_(False)
     return spec, dit, tokenizer
 
 
-def _load_state(module: torch.nn.Module, path: Path, device: str | torch.device = "cpu") -> None:
-    """Load a safetensors file into `module`, failing with one sentence on any mismatch."""
+def _load_state(module: torch.nn.Module, path: Path, device: str | torch.device = "cpu",
+                dtype: torch.dtype | None = None) -> None:
+    """Load a safetensors file into `module`, failing with one sentence on any mismatch.
+
+    Floating-point tensors are cast to `dtype` (default: the dtype the module's own tensors have), so
+    a file stored in bf16 never leaves bf16 weights in an fp32 model (`assign=True` would keep them).
+    """
     if not path.is_file():
         raise InputError(f"The model folder is missing {path.name} (expected at {path}); "
                          "copy the complete model folder.")
@@ -165,4 +187,9 @@ def _load_state(module: torch.nn.Module, path: Path, device: str | torch.device 
                   f"(e.g. {unexpected[:2]}), {len(wrong)} with the wrong shape (e.g. "
                   f"{[(k, tuple(state[k].shape), tuple(expected[k].shape)) for k in wrong[:2]]})")
         raise InputError(f"The weights in {path} do not match the model in config.json: {detail}.")
+    for key, value in state.items():
+        if value.is_floating_point():
+            target = dtype if dtype is not None else expected[key].dtype
+            if value.dtype != target:
+                state[key] = value.to(target)
     module.load_state_dict(state, assign=True)

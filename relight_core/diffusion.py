@@ -68,7 +68,8 @@ def get_sigmas_karras(n: int, sigma_min: float = 0.002, sigma_max: float = 80.0,
 def sample_training_sigma(batch_size: int, p_mean: float = 0.0, p_std: float = 1.0,
                           generator: torch.Generator | None = None, device=None) -> torch.Tensor:
     """[B] training noise levels, ln σ ~ N(p_mean, p_std²) (EDM log-normal)."""
-    noise = torch.randn(batch_size, generator=generator)
+    noise = torch.randn(batch_size, generator=generator,
+                        device=generator.device if generator is not None else None)
     return (p_mean + p_std * noise).exp().to(device)
 
 
@@ -208,8 +209,9 @@ class ConditionedDenoiser:
         self.condition_mask = condition_mask
         self.augment_sigma = augment_sigma
         self.sigma_data = sigma_data
-        generator = torch.Generator().manual_seed(seed)
-        noise = torch.randn(condition_latent.shape, generator=generator).to(condition_latent)
+        generator = torch.Generator(device=condition_latent.device).manual_seed(seed)
+        noise = torch.randn(condition_latent.shape, generator=generator,
+                            device=condition_latent.device).to(condition_latent)
         self.augmented = condition_latent + augment_sigma * noise      # fixed for the whole run
 
     def __call__(self, x: torch.Tensor, sigma: torch.Tensor, **extra) -> torch.Tensor:

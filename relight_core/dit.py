@@ -27,18 +27,30 @@ NUM_CLIPS = 3                                    # [input | relit | albedo] alon
 LIGHTING_KEYS = ("env_ldr", "env_log", "env_dir")  # released `condition_keys` order (env_dir = env_nrm)
 LIGHTING_CHANNELS = len(LIGHTING_KEYS) * (LATENT_CHANNELS + 1)  # 51: each latent + its mask
 
-CHANNELS: dict[str, slice] = {
-    "noisy": slice(0, 16),             # the latent being denoised (c_in-scaled)
-    "condition_mask": slice(16, 17),   # 1 on frames that are given (clean condition)
-    "env_ldr": slice(17, 33),          # lighting latents, non-zero in the relit clip only
-    "env_ldr_mask": slice(33, 34),
-    "env_log": slice(34, 50),
-    "env_log_mask": slice(50, 51),
-    "env_dir": slice(51, 67),
-    "env_dir_mask": slice(67, 68),
-    "padding_mask": slice(68, 69),     # 1 on padded pixels (released inference: all zeros)
-    "clip_type": slice(69, 72),        # learned Embedding(3, 3), row = clip index
-}
+
+def channel_layout(latent: int = LATENT_CHANNELS) -> dict[str, slice]:
+    """Named channel slices of a token for `latent` latent channels (16 for the released model:
+    72 channels; the pixel tokenizer's 192 give 4·192 + 8 = 776)."""
+    names = ["noisy", "condition_mask"]
+    widths = [latent, 1]
+    for key in LIGHTING_KEYS:
+        names += [key, f"{key}_mask"]
+        widths += [latent, 1]
+    names += ["padding_mask", "clip_type"]
+    widths += [1, 3]
+    layout, start = {}, 0
+    for name, width in zip(names, widths):
+        layout[name] = slice(start, start + width)
+        start += width
+    return layout
+
+
+CHANNELS: dict[str, slice] = channel_layout()
+# For 16 latent channels (the released model):
+#   noisy 0:16 (c_in-scaled) · condition_mask 16 (1 on given frames) · env_ldr 17:33 + mask 33 ·
+#   env_log 34:50 + mask 50 · env_dir 51:67 + mask 67 (lighting non-zero in the relit clip only) ·
+#   padding_mask 68 (1 on padded pixels; released inference: all zeros) · clip_type 69:72
+#   (learned Embedding(3, 3), row = clip index).
 ASSEMBLED_CHANNELS = CHANNELS["padding_mask"].stop   # 69, what `assemble_inputs` returns
 TOKEN_CHANNELS = CHANNELS["clip_type"].stop          # 72, what the patch embedding sees
 
@@ -58,10 +70,10 @@ def pack_lighting(env_ldr: torch.Tensor | None, env_log: torch.Tensor | None,
 def assemble_inputs(noisy: torch.Tensor, condition_mask: torch.Tensor, lighting: torch.Tensor | None,
                     padding_mask: torch.Tensor | None) -> torch.Tensor:
     """[B,69,3t,h,w]: noisy latent, condition mask, lighting (relit clip only), padding mask."""
-    b, _, frames, h, w = noisy.shape
+    b, c, frames, h, w = noisy.shape
     t = frames // NUM_CLIPS
     mask = condition_mask.to(noisy.dtype).expand(b, 1, frames, h, w)               # (B, 1, 3t, h, w)
-    light = noisy.new_zeros(b, LIGHTING_CHANNELS, frames, h, w)                    # (B, 51, 3t, h, w)
+    light = noisy.new_zeros(b, len(LIGHTING_KEYS) * (c + 1), frames, h, w)         # (B, 51, 3t, h, w)
     if lighting is not None:
         light[:, :, t:2 * t] = lighting.to(noisy.dtype)                            # relit clip only
     if padding_mask is None:
@@ -87,7 +99,7 @@ class DiTConfig:
     adaln_lora_dim: int = 64               # rank of the AdaLN-LoRA modulation
     patch_spatial: int = 2                 # latent pixels per token side
     patch_temporal: int = 1                # latent frames per token
-    out_channels: int = LATENT_CHANNELS
+    out_channels: int = LATENT_CHANNELS    # latent channels in and out (192 for the pixel tokenizer)
     cross_attention: bool = False          # the released model has it (its context is all zeros)
     context_dim: int = 1024                # T5 embedding width of the released model
     rope_extrapolation: tuple[float, float, float] = (1.0, 1.0, 2.0)  # (h, w, t) NTK ratios
@@ -310,8 +322,10 @@ class JointDiT(nn.Module):
         super().__init__()
         self.config = config
         c = config
-        patch_in = TOKEN_CHANNELS * c.patch_temporal * c.patch_spatial ** 2
-        self.clip_type_embed = nn.Embedding(NUM_CLIPS, TOKEN_CHANNELS - ASSEMBLED_CHANNELS)
+        layout = channel_layout(c.out_channels)
+        token_channels = layout["clip_type"].stop
+        patch_in = token_channels * c.patch_temporal * c.patch_spatial ** 2
+        self.clip_type_embed = nn.Embedding(NUM_CLIPS, token_channels - layout["padding_mask"].stop)
         self.patch_embed = nn.Linear(patch_in, c.width, bias=False)
         self.t_embedder = TimestepEmbedder(c.width)
         self.blocks = nn.ModuleList([JointDiTBlock(c) for _ in range(c.depth)])

@@ -18,6 +18,9 @@ from dataclasses import dataclass
 from fractions import Fraction
 
 os.environ.setdefault("OPENCV_IO_ENABLE_OPENEXR", "1")  # must precede the cv2 import
+# OpenCV prints its own "[ERROR:0@0.4] global loadsave.cpp ..." lines for damaged files; our
+# errors already say what went wrong in one sentence. OPENCV_LOG_LEVEL set by the user still wins.
+_OPENCV_QUIET = "OPENCV_LOG_LEVEL" not in os.environ
 
 import av  # noqa: E402
 import cv2  # noqa: E402
@@ -28,6 +31,9 @@ import torch.nn.functional as F  # noqa: E402
 from PIL import Image, ImageOps, UnidentifiedImageError  # noqa: E402
 
 from relight_core.errors import InputError  # noqa: E402
+
+if _OPENCV_QUIET:
+    cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
 
 MAX_SIDE = 8192  # pixels per side, checked from headers before decoding
 MAX_DECODED_PIXELS = 2**28  # T·H·W after decoding (≈ 3.2 GB as float32 RGB)
@@ -129,6 +135,17 @@ def _target_size(height: int, width: int, size: int, multiple: int = SIZE_MULTIP
     """(H, W) with the long side scaled to `size` and each side rounded to a multiple (≥ multiple)."""
     scale = size / max(height, width)
     return tuple(max(multiple, round(side * scale / multiple) * multiple) for side in (height, width))
+
+
+def target_size(height: int, width: int, size: int, multiple: int = SIZE_MULTIPLE) -> tuple[int, int]:
+    """The (H, W) that `resize_frames(frames, size, multiple)` gives for frames of height × width."""
+    return _target_size(height, width, size, multiple)
+
+
+def media_kind(path) -> str:
+    """'image' (PNG, JPEG, EXR, HDR, ...) or 'video', judged from the file's bytes, not its name."""
+    path = _check_path(path)
+    return "video" if _kind(path) == "video" else "image"
 
 
 # ---------------------------------------------------------------------------------------------
@@ -322,19 +339,28 @@ def load_video(path, start: int = 0, end: int | None = None, max_frames: int | N
     expected = min(end or info.num_frames, info.num_frames) - start
     _check_budget(path, min(expected, max_frames or expected), H, W)
     limit = min(end - start if end is not None else np.inf, max_frames or np.inf)
-    frames, first_time = [], None
+    frames, first_time, decoded, cut_short = [], None, 0, False
     with _open_video(path) as container:
+        declared = container.streams.video[0].frames  # exact count from the container (0: unknown)
         container.streams.video[0].thread_type = "AUTO"
         for index, frame in enumerate(_decoded(container, path)):
+            decoded = index + 1
             if index < start:
                 continue
             if len(frames) >= limit:
+                cut_short = True
                 break
             _check_budget(path, len(frames) + 1, H, W)  # headers can undercount frames
             first_time = frame.time if first_time is None else first_time
             rgb = np.rot90(frame.to_ndarray(format="rgb24"), round((frame.rotation or 0) / 90))
             frames.append(_resize(rgb[None].astype(np.float32) / 255.0, H, W)[0])
         has_audio = bool(container.streams.audio)
+    # A truncated file decodes without an error but stops early: compare with the declared count.
+    if declared and not cut_short and decoded < min(declared, start + limit):
+        raise InputError(
+            f"{_name(path)} is truncated or damaged: only {decoded} of its {declared} frames could be read; "
+            "re-export or re-download it."
+        )
     if not frames:
         raise InputError(
             f"{_name(path)} has no frames from frame {start} on ({info.num_frames} in all); pick an earlier start."
@@ -383,10 +409,23 @@ def _atomic(path) -> Iterator[str]:
     os.close(fd)
     try:
         yield tmp
+        os.chmod(tmp, 0o666 & ~_umask())  # a normal file (0644), not mkstemp's private 0600
         os.replace(tmp, path)
     finally:
         if os.path.exists(tmp):
             os.remove(tmp)
+
+
+def _umask() -> int:
+    """The process umask, read without changing it (Linux); 0o022 where it cannot be read."""
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith("Umask:"):
+                    return int(line.split()[1], 8)
+    except (OSError, ValueError, IndexError):
+        pass
+    return 0o022
 
 
 def _to_uint8(frames: np.ndarray) -> np.ndarray:

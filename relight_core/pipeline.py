@@ -18,11 +18,11 @@ from __future__ import annotations
 
 import hashlib
 import math
+import os
 import queue
 import threading
 import time
 from collections import OrderedDict
-from contextlib import nullcontext
 from dataclasses import dataclass, field
 from typing import Callable, Iterator
 
@@ -30,14 +30,16 @@ import numpy as np
 import torch
 
 from relight_core import lighting
-from relight_core.checkpoint import ModelSpec, load_model
+from relight_core.checkpoint import ModelSpec, load_model, resolve_model
 from relight_core.chunking import crossfade_weights, pad_to_valid, plan_chunks, stitch
 from relight_core.diffusion import SAMPLERS, ConditionedDenoiser, EDMPrecond, get_sigmas_karras, guided
 from relight_core.dit import assemble_inputs
 from relight_core.errors import InputError
+from relight_core.precision import autocast, precision_name, resolve_precision
 
 MODES = ("relight", "albedo", "render", "random")
 CLIPS = 3  # [input | relit | albedo]
+MAX_SEED = 2**63 - 1  # seeds are 0 … 2⁶³−1 (a signed 64-bit integer)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -58,7 +60,12 @@ class RelightRequest:
     rotate_light: bool = False
     sweep: tuple[float, float] = (0.0, 360.0)
     intensity: float = 1.0
+    temperature: float = lighting.NEUTRAL_KELVIN  # the light's colour temperature, K (lower = warmer)
     albedo: np.ndarray | None = None      # [T,H,W,3] for mode="render"
+    # Linear panoramas already in the camera frame (the dataset's env*/ files): [H,W,3] for every
+    # frame or [T,H,W,3] per frame, any size (re-gridded to the frames'). Used as given, in place of
+    # probe/rotation/rotate_light/sweep; the intensity and temperature still apply to it.
+    camera_probe: torch.Tensor | np.ndarray | None = None
     steps: int | None = None              # None: the model's default
     sampler: str | None = None            # None: the model's default
     seed: int = 0
@@ -120,23 +127,34 @@ Event = Progress | ChunkDone | Finished
 class Relighter:
     """The UniRelight joint model behind one streaming API; see the module docstring."""
 
-    def __init__(self, spec: ModelSpec, dit, tokenizer, device: str | torch.device = "cpu"):
+    def __init__(self, spec: ModelSpec, dit, tokenizer, device: str | torch.device = "cpu",
+                 precision: str | None = None):
         self.spec = spec
-        # bf16 weights, as the released inference runs: no per-call weight casts under autocast.
-        self.dit = dit.to(torch.bfloat16) if spec.autocast_bf16 else dit
-        self.tokenizer = tokenizer
         self.device = torch.device(device)
+        # The hardware decides (precision.py), never the dtype the weights were stored in.
+        self.precision_choice = precision or spec.precision          # what was asked: auto | fp32 | ...
+        self.dtype = resolve_precision(self.precision_choice, self.device)
+        self.precision = precision_name(self.dtype)                   # what runs: fp32 | bf16 | fp16
+        # Weights in the compute dtype: under autocast no per-call weight casts, in fp32 no bf16 left over.
+        self.dit = dit.to(self.dtype)
+        self.tokenizer = _tokenizer_in(tokenizer, self.dtype)
         self.denoiser = EDMPrecond(self._network)
         self._latent_cache: OrderedDict[str, torch.Tensor] = OrderedDict()
         self._preview_matrix: torch.Tensor | None = None
         self._flops_per_second: float | None = None  # measured on the last run
 
     @classmethod
-    def load(cls, model: str = "default", device: str | torch.device | None = None) -> "Relighter":
-        """Load "default", a preset name ("tiny", "small", "unirelight-7b") or a model directory."""
-        device = device or ("cuda" if torch.cuda.is_available() else "cpu")
-        spec, dit, tokenizer = load_model(model, device)
-        return cls(spec, dit, tokenizer, device)
+    def load(cls, model: str = "default", device: str | torch.device | None = None,
+             precision: str | None = None) -> "Relighter":
+        """Load "default", a preset name ("tiny", "small", "unirelight-7b") or a model directory.
+
+        `precision` (auto | fp32 | bf16 | fp16) overrides the model's config; see precision.py.
+        """
+        device = resolve_device(device)  # a missing GPU or a typo is named, not blamed on the weights
+        spec, _ = resolve_model(model)
+        dtype = resolve_precision(precision or spec.precision, device)  # load straight into it
+        spec, dit, tokenizer = load_model(model, device, dtype)
+        return cls(spec, dit, tokenizer, device, precision)
 
     # -- public API -------------------------------------------------------------------------
 
@@ -160,6 +178,60 @@ class Relighter:
         tokens = CLIPS * t * (height // self.frame_multiple) * (width // self.frame_multiple)
         per_eval = self._seconds_per_eval_at(tokens)
         return len(chunks) * (steps + 1) * per_eval
+
+    def memory_estimate(self, num_frames: int, height: int, width: int, guidance: bool = False
+                        ) -> tuple[int, int]:
+        """Rough peak bytes of a request at this working size: (host arrays, model activations).
+
+        Host: the clip's float32 frames, outputs and copies (≈ 6 arrays) plus one chunk's lighting
+        panoramas and encodings (≈ 8). Model (on its device): the tokenizer's widest full-resolution
+        stage (≈ 9 live tensors of its first width at H/2 × W/2, both output clips at once) and the DiT's
+        ≈ (mlp_ratio + 12) float32 tensors of tokens × width (twice with guidance). Attention runs
+        through fused kernels, linear in the token count. Measured peaks (CPU, fp32) are within 15 %:
+        tiny at 2048 px 0.94 GB, the default model at 1024 px 0.79 GB.
+        """
+        pixels = height * width
+        chunk = min(num_frames, self.spec.chunk_frames)
+        host = 6 * 12 * pixels * num_frames + 8 * 12 * pixels * chunk
+        config = getattr(self.tokenizer, "config", None)
+        first_width = getattr(config, "channels", (128,))[0]  # 128 for tokenizers that do not say
+        tokenizer = 2 * 9 * first_width * (pixels // 4) * 4 * chunk
+        t = self.tokenizer.latent_frames(chunk) if num_frames > 1 else 1
+        tokens = CLIPS * t * max(1, height // self.frame_multiple) * max(1, width // self.frame_multiple)
+        dit = tokens * self.spec.dit.width * (self.spec.dit.mlp_ratio + 12) * 4 * (2 if guidance else 1)
+        return int(host), int(tokenizer + dit)
+
+    def check_memory(self, num_frames: int, height: int, width: int, guidance: bool = False,
+                     hint: str = "choose a smaller working size or fewer frames") -> None:
+        """Raise InputError, before anything is allocated, when a request cannot fit in this machine's memory."""
+        host_free, device_free = free_memory(self.device)
+
+        def fits(h: int, w: int) -> bool:
+            host, model = self.memory_estimate(num_frames, h, w, guidance)
+            if device_free is None:  # the model runs in host memory too
+                return host + model <= host_free
+            return host <= host_free and model <= device_free
+
+        if fits(height, width):
+            return
+        host, model = self.memory_estimate(num_frames, height, width, guidance)
+        need, free = (host + model, host_free) if device_free is None else \
+            ((model, device_free) if model > device_free else (host, host_free))
+        where = "this machine has" if device_free is None or need == host else f"{self.device} has"
+        m, long_side = self.frame_multiple, max(height, width)
+        low, high = 0, long_side // m  # largest long side (in multiples of m) that fits, same aspect
+        while low < high:
+            mid = (low + high + 1) // 2
+            scale = mid * m / long_side
+            if fits(max(m, round(height * scale / m) * m), max(m, round(width * scale / m) * m)):
+                low = mid
+            else:
+                high = mid - 1
+        frames = f"{num_frames} frame{'s' if num_frames != 1 else ''}"
+        largest = (f"; at most about {low * m} pixels on the long side fit" if low else
+                   "; even the smallest size does not fit, so use fewer frames")
+        raise InputError(f"Working at {width}×{height} for {frames} needs about {_gb(need)} of memory, but "
+                         f"{where} {_gb(free)} free{largest}: {hint}.")
 
     def run(self, request: RelightRequest) -> Iterator[Event]:
         """Run a request, yielding Progress, ChunkDone and finally Finished events."""
@@ -192,10 +264,17 @@ class Relighter:
                 overlap = (prev_relit[-shared:], prev_albedo[-shared:]) if shared > 0 else None
             rot = rotations[start:start + length]
             rot = rot + [rot[-1]] * (padded.shape[0] - len(rot))
+            chunk_probe = probe
+            if probe is not None and probe.dim() == 4:  # camera-frame panoramas: this chunk's, padded
+                chunk_probe = probe[start:start + length]
+                chunk_probe = torch.cat([chunk_probe, chunk_probe[-1:].expand(padded.shape[0] - length, -1, -1, -1)])
             condition, mask, lighting_latents = self._conditions(
-                request, padded, albedo_in, probe, rot, overlap)
+                request, padded, albedo_in, chunk_probe, rot, overlap)
             t = condition.shape[2] // CLIPS
-            generator = torch.Generator(device="cpu").manual_seed(request.seed * 1000003 + index)
+            # Chunks that share no frames (an image model run frame by frame) share their noise, so
+            # that consecutive frames are sampled alike and do not flicker.
+            chunk_seed = index if self.spec.overlap_frames > 0 else 0
+            generator = torch.Generator(device="cpu").manual_seed((request.seed * 1000003 + chunk_seed) % 2**64)
             noise = torch.randn(condition.shape, generator=generator).to(self.device)
             cond_args = {"lighting": lighting_latents}
             uncond_args = {"lighting": torch.zeros_like(lighting_latents)}
@@ -238,6 +317,7 @@ class Relighter:
                                      request.mode, request.audio_start, seconds,
                                      {"chunks": len(chunks), "steps": steps, "sampler": sampler_name,
                                       "evaluations": evals_done, "model": self.spec.name,
+                                      "precision": self.precision,
                                       "trained": self.spec.trained}))
 
     # -- request preparation ----------------------------------------------------------------
@@ -253,7 +333,12 @@ class Relighter:
         if height % m or width % m:
             raise InputError(f"The frames are {width}×{height}, but both sides must be multiples of {m}; "
                              "resize them with media.resize_frames first.")
-        if request.mode in ("relight", "render") and request.probe is None:
+        if request.camera_probe is not None:
+            shape = np.shape(request.camera_probe)
+            if len(shape) not in (3, 4) or shape[-1] != 3 or (len(shape) == 4 and shape[0] != frames.shape[0]):
+                raise InputError(f"The camera-frame probe has shape {list(shape)}; give [H,W,3] or one "
+                                 f"panorama per frame, [{frames.shape[0]},H,W,3].")
+        if request.mode in ("relight", "render") and request.probe is None and request.camera_probe is None:
             raise InputError(f"The '{request.mode}' mode needs an HDR probe; pick one, or choose the "
                              "'random' mode for random illuminations.")
         if request.mode == "render":
@@ -268,13 +353,26 @@ class Relighter:
             raise InputError(f"Guidance must be a finite number ≥ 0, not {request.guidance}.")
         if not math.isfinite(request.intensity) or request.intensity <= 0:
             raise InputError(f"Intensity must be a positive number, not {request.intensity}.")
+        lighting.check_temperature(request.temperature)
+        if isinstance(request.seed, bool) or not isinstance(request.seed, (int, np.integer)) \
+                or not 0 <= int(request.seed) <= MAX_SEED:
+            raise InputError(f"The seed {request.seed} is out of range; use a whole number from 0 to {MAX_SEED}.")
+        self.check_memory(frames.shape[0], height, width, guidance=request.guidance > 0)
         return np.clip(frames, 0.0, 1.0)
 
     def _prepared_probe(self, request: RelightRequest) -> torch.Tensor | None:
-        if request.probe is None or request.mode in ("albedo", "random"):
+        if request.mode in ("albedo", "random"):
+            return None
+        if request.camera_probe is not None:  # [T,H,W,3] at the frames' size, used as given
+            num_frames, height, width = np.shape(request.frames)[:3]
+            panoramas = torch.as_tensor(np.asarray(request.camera_probe, dtype=np.float32))
+            panoramas = lighting.resize_panorama(panoramas, height, width)
+            panoramas = panoramas.expand(num_frames, height, width, 3) if panoramas.dim() == 3 else panoramas
+            return lighting.adjust_light(panoramas, request.intensity, request.temperature).contiguous()
+        if request.probe is None:
             return None
         probe = torch.as_tensor(np.asarray(request.probe, dtype=np.float32))
-        return lighting.clean_hdr(probe, request.intensity)
+        return lighting.adjust_light(probe, request.intensity, request.temperature)
 
     # -- latents ----------------------------------------------------------------------------
 
@@ -307,7 +405,11 @@ class Relighter:
         if key in self._latent_cache:
             self._latent_cache.move_to_end(key)
             return self._latent_cache[key]
-        panoramas = torch.stack([lighting.probe_in_camera(probe, height, width, rotation=r) for r in rotations])
+        if probe.dim() == 4:  # RelightRequest.camera_probe: the chunk's panoramas, already in the camera frame
+            panoramas = probe
+        else:
+            panoramas = torch.stack([lighting.probe_in_camera(probe, height, width, rotation=r) for r in rotations])
+        panoramas = lighting.lowpass_panorama(panoramas, self.spec.lighting_size)
         encodings = lighting.encode_lighting(panoramas)
         parts = []
         for name in ("env_ldr", "env_log", "env_dir"):
@@ -370,7 +472,11 @@ class Relighter:
         return frames[0, :length], frames[1, :length]
 
     def _preview(self, x0: torch.Tensor, t: int, height: int, width: int) -> tuple[np.ndarray, np.ndarray]:
-        """Cheap preview: a fitted linear map latent → RGB on the first latent frame of each clip."""
+        """Cheap preview of the first latent frame of each clip: the exact decode where the tokenizer's
+        decode is cheap (the pixel tokenizer), else a fitted linear map latent → RGB."""
+        if getattr(self.tokenizer, "decode_is_cheap", False):
+            frames = [self.tokenizer.decode(x0[:, :, clip * t:clip * t + 1].float())[0, :, 0] for clip in (1, 2)]
+            return tuple(((f.clamp(-1, 1) + 1) / 2).permute(1, 2, 0).cpu().numpy() for f in frames)
         matrix = self._latent_to_rgb()
         out = []
         for clip in (1, 2):
@@ -398,9 +504,8 @@ class Relighter:
         return self._preview_matrix
 
     def _autocast(self):
-        if self.spec.autocast_bf16:
-            return torch.autocast(self.device.type, dtype=torch.bfloat16)
-        return nullcontext()
+        """Autocast for bf16/fp16, nothing for fp32."""
+        return autocast(self.dtype, self.device)
 
     def _flops_per_eval(self, tokens: int) -> float:
         """Network FLOPs of one evaluation: 2·params per token plus attention's 4·L²·D a block."""
@@ -411,6 +516,76 @@ class Relighter:
         """Seconds per evaluation at `tokens`, from the throughput of the last run when there was one."""
         throughput = self._flops_per_second or (2.5e11 if self.device.type == "cpu" else 2e14)
         return self._flops_per_eval(tokens) / throughput
+
+
+def resolve_device(device: str | torch.device | None) -> torch.device:
+    """The device to run on (None: cuda when available, else cpu); InputError for one that is absent or unknown."""
+    if device is None or str(device).strip() == "":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    try:
+        resolved = torch.device(str(device).strip())
+    except (RuntimeError, TypeError, ValueError):
+        raise InputError(f"'{device}' is not a device; use cpu, cuda or cuda:N.") from None
+    if resolved.type == "cpu":
+        return resolved
+    if resolved.type == "cuda":
+        if not torch.cuda.is_available():
+            raise InputError(f"The device '{device}' was asked for, but this machine has no usable CUDA GPU; "
+                             "run on cpu instead (--device cpu).")
+        count = torch.cuda.device_count()
+        if resolved.index is not None and resolved.index >= count:
+            raise InputError(f"There is no GPU {device}: this machine has {count} (cuda:0 to cuda:{count - 1}).")
+        return resolved
+    if resolved.type == "mps" and torch.backends.mps.is_available():
+        return resolved
+    raise InputError(f"The device '{device}' is not available here; use cpu or cuda.")
+
+
+def free_memory(device: torch.device) -> tuple[int, int | None]:
+    """(free host bytes, free bytes on the device or None when the device is the host)."""
+    host = None
+    try:
+        with open("/proc/meminfo") as f:
+            info = {line.split(":")[0]: int(line.split()[1]) * 1024 for line in f if ":" in line}
+        host = info.get("MemAvailable", info.get("MemFree"))
+    except (OSError, ValueError, IndexError):
+        pass
+    if host is None:
+        try:
+            host = os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+        except (OSError, ValueError, AttributeError):
+            host = 8 << 30
+    for limit_file, usage_file in (("/sys/fs/cgroup/memory.max", "/sys/fs/cgroup/memory.current"),
+                                   ("/sys/fs/cgroup/memory/memory.limit_in_bytes",
+                                    "/sys/fs/cgroup/memory/memory.usage_in_bytes")):
+        try:  # a container's limit may be far below the machine's memory
+            with open(limit_file) as f:
+                limit = f.read().strip()
+            with open(usage_file) as f:
+                usage = int(f.read().strip())
+            if limit.isdigit() and int(limit) < 1 << 60:
+                host = min(host, max(0, int(limit) - usage))
+            break
+        except (OSError, ValueError):
+            continue
+    if device.type == "cuda":
+        free, _ = torch.cuda.mem_get_info(device)
+        return host, int(free)
+    return host, None
+
+
+def _gb(size: int) -> str:
+    return f"{size / 2**30:.1f} GB" if size < 10 * 2**30 else f"{size / 2**30:.0f} GB"
+
+
+def _tokenizer_in(tokenizer, dtype: torch.dtype):
+    """The tokenizer set up for compute in `dtype`: a module keeps fp32 weights (autocast lowers them
+    where it runs), a TorchScript one (Cosmos) is cast to `dtype` itself, whatever its config stored."""
+    if isinstance(tokenizer, torch.nn.Module):
+        return tokenizer.float()
+    if hasattr(tokenizer, "set_dtype"):
+        tokenizer.set_dtype(dtype)
+    return tokenizer
 
 
 class _Stopped(Exception):

@@ -212,9 +212,14 @@ def probe_thumbnail(probe: torch.Tensor, height: int) -> np.ndarray:
 
 
 def render_preview(probe: torch.Tensor, rotation: float = lighting.DEFAULT_ROTATION,
-                   intensity: float = 1.0, config: PreviewConfig = PreviewConfig()) -> np.ndarray:
-    """The light preview: balls on top, panorama below, uint8 [S + S, 2S, 3]."""
-    probe = lighting.clean_hdr(torch.as_tensor(probe, dtype=torch.float32), intensity)
+                   intensity: float = 1.0, config: PreviewConfig = PreviewConfig(),
+                   temperature: float = lighting.NEUTRAL_KELVIN) -> np.ndarray:
+    """The light preview: balls on top, panorama below, uint8 [S + S, 2S, 3].
+
+    The probe gets its exposure and colour temperature from `lighting.adjust_light`, as the
+    pipeline's request does, so the preview shows the light the model is given.
+    """
+    probe = lighting.adjust_light(probe, intensity, temperature)
     balls = render_balls(probe, rotation, config)
     strip = panorama_image(camera_panorama(probe, rotation, config.ball_size))
     return np.concatenate([balls, strip], axis=0)

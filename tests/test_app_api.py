@@ -96,16 +96,17 @@ def test_relight_streams_previews_then_final_files(studio):
     for path in downloads:
         assert path.is_file()
         if path.suffix == ".png":
-            assert Image.open(path).size == (64, 48)  # 256×192 → long side 64, sides multiples of 16
+            assert Image.open(path).size == (256, 192)  # relit at 64×48, returned at the input's 256×192
         else:
             with OpenEXR.File(str(path)) as exr:
                 pixels = next(iter(exr.channels().values())).pixels
-            assert pixels.shape[:2] == (48, 64) and np.isfinite(pixels).all()
+            assert pixels.shape[:2] == (192, 256) and np.isfinite(pixels).all()
     relit = np.asarray(Image.open(final[2]))
-    assert relit.shape == (48, 64, 3)
+    assert relit.shape == (192, 256, 3)
     before, after = final[7]
     assert Path(before).is_file() and Path(after).is_file()
-    assert list((tmp / "studio" / "work" / "jobs").iterdir()) == []  # the job's own files are gone
+    root, = (tmp / "studio").glob("unirelight-studio-*")  # the studio's own subfolder of --temp-dir
+    assert list((root / "work" / "jobs").iterdir()) == []  # the job's own files are gone
 
 
 def test_video_streams_chunks_and_keeps_fps(studio):
@@ -125,7 +126,7 @@ def test_video_streams_chunks_and_keeps_fps(studio):
     assert "Done" in final[0]
     relit_video = final[5]["video"] if isinstance(final[5], dict) else final[5]
     relit = media.load_media(relit_video)
-    assert relit.is_video and relit.frames.shape == (25, 48, 64, 3) and relit.fps == pytest.approx(12.0)
+    assert relit.is_video and relit.frames.shape == (25, 192, 256, 3) and relit.fps == pytest.approx(12.0)
     assert sorted(Path(p).suffix for p in final[9]) == [".mp4", ".mp4"]
 
 
@@ -158,8 +159,8 @@ def test_other_modes_and_an_uploaded_probe(studio, mode):
     final = run_job(client, **relight_args(REPO / "examples" / "inputs" / "objects.png", mode=mode,
                                            probe_upload=probe))[-1]
     assert "Done" in final[0]
-    assert np.asarray(Image.open(final[2])).shape == (48, 64, 3)
-    assert np.asarray(Image.open(final[3])).shape == (48, 64, 3)
+    assert np.asarray(Image.open(final[2])).shape == (192, 256, 3)
+    assert np.asarray(Image.open(final[3])).shape == (192, 256, 3)
 
 
 def test_stop_cancels_a_running_job_and_the_next_one_runs(studio):

@@ -25,3 +25,28 @@ def test_a_fixed_model_refuses_other_folders(tmp_path):
     with pytest.raises(InputError, match="fixed model"):
         studio.relighter(str(tmp_path))
     assert studio.relighter("") is studio.relighter("tiny")
+
+
+def test_the_model_line_shows_the_precision_in_use(tmp_path):
+    import app
+
+    assert app.parse_args(["--precision", "fp32"]).precision == "fp32"
+    assert app.parse_args([]).precision is None
+    studio = Studio(StudioConfig(model="tiny", precision="fp32", envmaps_dir=ROOT / "envmaps",
+                                 work_dir=tmp_path / "work"))
+    assert studio.relighter().precision == "fp32"
+    assert "Precision: **fp32** (as asked)" in studio.model_notice()
+    auto = Studio(StudioConfig(model="tiny", envmaps_dir=ROOT / "envmaps", work_dir=tmp_path / "work2"))
+    assert f"Precision: **{auto.relighter().precision}** (auto, by this machine)" in auto.model_notice()
+
+
+def test_app_refuses_fp16_on_the_cpu_in_one_sentence(capsys):
+    import app
+    import torch
+
+    if torch.cuda.is_available():
+        pytest.skip("fp16 is valid where the studio runs on a GPU")
+
+    assert app.main(["--precision", "fp16", "--model", "tiny", "--no-browser"]) == 2
+    assert capsys.readouterr().err.strip() == \
+        "error: fp16 runs only on a CUDA GPU, not on cpu; use --precision auto, fp32 or bf16 here."

@@ -2,7 +2,13 @@
 
 import json
 
-from relight_core.bench import attention_flops, count_evaluations, run_bench
+import pytest
+import torch
+
+from relight_core import bench
+from relight_core.bench import attention_flops, count_evaluations, peak_size, run_bench
+from relight_core.errors import InputError
+from relight_core.precision import precision_name, resolve_precision
 
 
 def test_our_sampler_evaluates_the_network_once_per_step_plus_one():
@@ -20,5 +26,30 @@ def test_quick_bench_reports_the_numbers(tmp_path, capsys):
     assert json.loads((tmp_path / "bench.json").read_text()) == json.loads(json.dumps(numbers))
     assert abs(numbers["unirelight_7b_params"] - 7e9) / 7e9 < 0.05
     assert numbers["evaluations"] == {"ours": 36, "released": 71}
-    assert all(row["gflops_per_s"] > 0 and row["seconds"] > 0 for row in numbers["dit"])
-    assert "unirelight-7b preset" in capsys.readouterr().out
+    # Both peaks are measured; the DiT runs in the precision the Relighter would pick here ...
+    assert set(numbers["matmul_peak_gflops"]) == {"fp32", "bf16"}
+    assert all(value > 0 for value in numbers["matmul_peak_gflops"].values())
+    assert numbers["matmul_size"]["fp32"] == 1024 and 256 <= numbers["matmul_size"]["bf16"] <= 1024
+    used = precision_name(resolve_precision("auto", "cpu"))
+    assert numbers["precision"] == used
+    assert [(row["preset"], row["frames"]) for row in numbers["dit"]] == [("tiny", 1), ("tiny", 17)]
+    for row in numbers["dit"]:
+        assert row["precision"] == used and row["gflops_per_s"] > 0 and row["seconds"] > 0
+        # ... and is compared with that precision's peak
+        assert row["vs_peak"] == pytest.approx(row["gflops_per_s"] / numbers["matmul_peak_gflops"][used], abs=2e-3)
+    out = capsys.readouterr().out
+    assert "unirelight-7b preset" in out and f"of {used} peak" in out
+
+
+def test_bf16_peak_is_sized_down_where_bf16_is_slow(monkeypatch):
+    monkeypatch.setattr(bench, "matmul_gflops", lambda *a, **k: 0.9)       # an AVX2 CPU: emulated bf16
+    assert peak_size(torch.bfloat16, 2048) == 512                          # 0.3 s a call, not 19 s at 2048²
+    monkeypatch.setattr(bench, "matmul_gflops", lambda *a, **k: 0.01)
+    assert peak_size(torch.bfloat16, 2048) == 256                          # never below the floor
+    monkeypatch.setattr(bench, "matmul_gflops", lambda *a, **k: 600.0)     # AMX
+    assert peak_size(torch.bfloat16, 2048) == 2048
+
+
+def test_bench_refuses_fp16_on_the_cpu():
+    with pytest.raises(InputError, match="fp16 runs only on a CUDA GPU"):
+        run_bench(quick=True, precision="fp16")

@@ -3,18 +3,20 @@
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 
 import gradio as gr
 
 from relight_core.diffusion import SAMPLERS
-from relight_core.lighting import DEFAULT_ROTATION
-from ui.studio import MODES, RANDOM_MODE, VIDEO_SUFFIXES, Studio, probe_choices, status_html
+from relight_core.lighting import DEFAULT_ROTATION, NEUTRAL_KELVIN
+from ui.studio import MODE_VIEWS, MODES, RANDOM_MODE, VIDEO_SUFFIXES, Studio, probe_choices, status_html
 
 INPUT_TYPES = [".png", ".jpg", ".jpeg", ".webp", ".exr", ".mp4", ".mov", ".webm"]
 PROBE_TYPES = [".hdr", ".exr"]
 SIZES = [64, 128, 192, 256, 320, 384, 512, 640, 768, 848, 1024]
 RESULT_HEIGHT = 300
+TEMPERATURES = (2000, 12000)  # the colour temperature slider's range, kelvin
 
 CSS = """
 .run-status { height: 46px; }
@@ -27,6 +29,13 @@ CSS = """
 #light-caption { font-size: 0.85em; padding: 0 8px; }
 #out-input img, #out-relit img, #out-albedo img, #input-preview img {
   width: 100%; height: 100%; object-fit: contain; }
+.field-error { color: var(--error-text-color, #b42318); background: var(--error-background-fill, #fef3f2);
+  border: 1px solid var(--error-border-color, #fda29b); border-radius: 6px; padding: 6px 10px;
+  font-weight: 600; }
+.field-note { padding: 4px 10px; font-size: 0.95em; }
+/* Every probe name in full: captions wrap instead of being cut with an ellipsis. */
+#probe-gallery .caption-label { white-space: normal; overflow: visible; text-overflow: clip;
+  overflow-wrap: anywhere; line-height: 1.15; max-width: 100%; }
 """
 
 THEME = gr.themes.Soft(primary_hue="orange", neutral_hue="slate")
@@ -48,13 +57,15 @@ def build_demo(studio: Studio, examples_dir: Path | None = None) -> gr.Blocks:
             with gr.Column(scale=5, min_width=340):
                 input_file = gr.File(label="Image or video", file_types=INPUT_TYPES, type="filepath",
                                      elem_id="input-file", height=110)
+                # Right under the upload: its size and length, or in words why it cannot be used.
+                input_info = gr.HTML("", elem_id="input-info")
+                input_ok = gr.State(True)
                 input_image = gr.Image(label="Input", interactive=False, height=220, elem_id="input-preview",
                                        buttons=[])
                 input_video = gr.Video(label="Input video", interactive=False, height=220, visible=False)
-                input_info = gr.Markdown("", elem_id="input-info")
                 with gr.Row(visible=False) as frame_row:
-                    frame_start = gr.Slider(0, 1, value=0, step=1, label="First frame")
-                    frame_end = gr.Slider(0, 1, value=0, step=1, label="Last frame")
+                    frame_start = FrameSlider(0, 1, value=0, step=1, label="First frame")
+                    frame_end = FrameSlider(0, 1, value=0, step=1, label="Last frame")
                 size = gr.Dropdown(sizes, value=spec.size, label="Working resolution (long side, pixels)")
                 estimate = gr.Markdown("Upload an image or a video to see the time estimate.",
                                        elem_id="estimate")
@@ -62,20 +73,29 @@ def build_demo(studio: Studio, examples_dir: Path | None = None) -> gr.Blocks:
                 num_seeds = gr.Slider(1, studio.config.max_seeds, value=4, step=1, visible=False,
                                       label="Number of random illuminations (seeds)")
 
-                with gr.Group(elem_id="probe-panel"):
+                with gr.Group(elem_id="probe-panel") as probe_panel:
+                    # Tall enough for every row, so the picked probe is always in sight.
                     probe_gallery = gr.Gallery(
                         probe_choices(studio.probes), label="Light probe (click to pick)", columns=4,
-                        height=190, allow_preview=False, object_fit="cover", elem_id="probe-gallery",
-                        selected_index=names.index(default_probe) if default_probe else None, buttons=[])
-                    probe_name = gr.Dropdown(names, value=default_probe, label="Selected probe",
+                        height=_gallery_height(len(names), 4), allow_preview=False, object_fit="contain",
+                        elem_id="probe-gallery", buttons=[],
+                        selected_index=names.index(default_probe) if default_probe else None)
+                    # The bundled probe's name: the gallery sets it, examples and API clients too.
+                    probe_name = gr.Dropdown(names, value=default_probe, label="Bundled probe", visible=False,
                                              elem_id="probe-name")
                     probe_file = gr.File(label="…or upload your own (.hdr / .exr)", file_types=PROBE_TYPES,
                                          type="filepath", height=120, elem_id="probe-file")
-                    no_probe = gr.Checkbox(False, label="No probe: random illumination")
+                    probe_info, probe_ok_value = studio.probe_status(default_probe, None)
+                    probe_info = gr.HTML(probe_info, elem_id="probe-info")
+                    probe_ok = gr.State(probe_ok_value)
                     rotation = gr.Slider(0, 360, value=DEFAULT_ROTATION, step=0.5, elem_id="rotation",
                                          label="Light rotation (yaw, degrees)")
                     exposure = gr.Slider(-6, 6, value=0, step=0.25, label="Light exposure (stops)")
-                    rotate_light = gr.Checkbox(False, label="Rotate the light across the clip")
+                    temperature = gr.Slider(*TEMPERATURES, value=NEUTRAL_KELVIN, step=100, elem_id="temperature",
+                                            label="Light colour temperature (kelvin)",
+                                            info="6500 K is neutral; lower is warmer (orange), higher cooler (blue).")
+                    rotate_light = gr.Checkbox(False, label="Rotate the light across the clip", visible=False,
+                                               elem_id="rotate-light")
                     with gr.Row(visible=False) as sweep_row:
                         sweep_start = gr.Number(0, label="Sweep from (degrees)")
                         sweep_end = gr.Number(360, label="Sweep to (degrees)")
@@ -84,6 +104,9 @@ def build_demo(studio: Studio, examples_dir: Path | None = None) -> gr.Blocks:
                     gr.Markdown("A mirror ball and a matte ball lit by the probe as the model receives it; "
                                 "below, the light all around the camera (the + marks where it looks).",
                                 elem_id="light-caption")
+                # Never shown: they only give API clients the raising versions of page events.
+                api_inspect = gr.Button(visible=False)
+                api_preview = gr.Button(visible=False)
 
                 with gr.Accordion("Advanced", open=False):
                     steps = gr.Slider(1, 100, value=spec.steps, step=1, label="Sampling steps")
@@ -122,43 +145,75 @@ def build_demo(studio: Studio, examples_dir: Path | None = None) -> gr.Blocks:
         if examples_dir is not None and (examples_dir / "manifest.json").is_file():
             _examples(studio, examples_dir, input_file, probe_name, rotation, mode,
                       [status, out_input, out_relit, out_albedo, vid_input, vid_relit, vid_albedo, compare,
-                       seeds_gallery, downloads])
+                       seeds_gallery, downloads], [probe_file, exposure, temperature])
 
         # ------------------------------------------------------------------ events
-        input_file.change(studio.input_changed, input_file,
-                          [input_image, input_video, frame_row, frame_start, frame_end, input_info],
-                          api_name="inspect_input")
-        input_file.change(_show_video_row, input_file, video_row, queue=False, api_visibility="private")
+        # The run button is named after the mode, and waits until the upload (and the probe, when the
+        # mode uses one) can be used: the reason is shown beside that control, once.
+        run_button_inputs = [mode, input_ok, probe_ok]
+        input_shown = [input_image, input_video, frame_row, frame_start, frame_end, input_info]
+        input_file.change(studio.input_checked, input_file, [*input_shown, input_ok],
+                          api_visibility="private").then(_run_button, run_button_inputs, run, queue=False,
+                                                         api_visibility="private")
+        api_inspect.click(studio.input_changed, input_file, input_shown, api_name="inspect_input")
+        input_file.change(_show_video_row, input_file, [video_row, rotate_light], queue=False,
+                          api_visibility="private")
         estimate_inputs = [input_file, mode, frame_start, frame_end, size, steps, num_seeds, model]
         for component in (input_file, mode, frame_start, frame_end, size, steps, num_seeds):
             component.change(studio.estimate, estimate_inputs, estimate, trigger_mode="always_last",
                              api_visibility="private")
 
-        mode.change(_mode_visibility, mode, [num_seeds, seeds_gallery, compare], queue=False, api_visibility="private")
-        mode.input(lambda m: m == RANDOM_MODE, mode, no_probe, queue=False, api_visibility="private")
-        no_probe.input(lambda on: RANDOM_MODE if on else "Relight", no_probe, mode, queue=False, api_visibility="private")
+        mode.change(_mode_layout, mode,
+                    [num_seeds, probe_panel, input_file, out_input, out_relit, out_albedo, vid_relit, vid_albedo,
+                     compare, seeds_gallery], queue=False, api_visibility="private")
+        mode.change(_run_button, run_button_inputs, run, queue=False, api_visibility="private")
         rotate_light.change(lambda on: gr.update(visible=on), rotate_light, sweep_row, queue=False,
                             api_visibility="private")
 
         probe_gallery.select(studio.probe_picked, None, [probe_name, probe_file], queue=False, api_visibility="private")
-        preview_inputs = [probe_name, probe_file, rotation, exposure, mode, rotate_light, sweep_start]
-        # Renders follow the slider while it moves; "always_last" drops stale positions.
-        rotation.change(studio.light_preview, preview_inputs, light_preview, trigger_mode="always_last",
-                        concurrency_limit=2, concurrency_id="preview", api_name="light_preview")
-        for component in (probe_name, probe_file, exposure, mode, rotate_light, sweep_start):
-            component.change(studio.light_preview, preview_inputs, light_preview, trigger_mode="always_last",
-                             concurrency_id="preview", api_visibility="private")
-        demo.load(studio.light_preview, preview_inputs, light_preview, api_visibility="private")
+
+        def probe_checked(name, upload):
+            info, ok = studio.probe_status(name, upload)
+            picked = names.index(name) if not upload and name in names else None
+            return info, ok, gr.update(selected_index=picked)
+
+        for component in (probe_name, probe_file):
+            component.change(probe_checked, [probe_name, probe_file], [probe_info, probe_ok, probe_gallery],
+                             api_visibility="private").then(_run_button, run_button_inputs, run, queue=False,
+                                                            api_visibility="private")
+        preview_inputs = [probe_name, probe_file, rotation, exposure, mode, rotate_light, sweep_start, temperature]
+        # Renders follow the slider while it moves; "always_last" drops stale positions. A probe that
+        # cannot be used shows no preview here: probe_info says why.
+        for component in (rotation, probe_name, probe_file, exposure, temperature, mode, rotate_light, sweep_start):
+            component.change(studio.light_preview_quiet, preview_inputs, light_preview, trigger_mode="always_last",
+                             concurrency_limit=2, concurrency_id="preview", api_visibility="private")
+        api_preview.click(studio.light_preview, preview_inputs, light_preview, concurrency_id="preview",
+                          api_name="light_preview")
+        demo.load(studio.light_preview_quiet, preview_inputs, light_preview, api_visibility="private")
 
         run_outputs = [status, out_input, out_relit, out_albedo, vid_input, vid_relit, vid_albedo, compare,
                        seeds_gallery, downloads]
         run_event = run.click(
             studio.run,
             [input_file, mode, probe_name, probe_file, rotation, exposure, rotate_light, sweep_start, sweep_end,
-             num_seeds, frame_start, frame_end, size, steps, sampler, seed, guidance, model],
+             num_seeds, frame_start, frame_end, size, steps, sampler, seed, guidance, model, temperature],
             run_outputs, api_name="relight", show_progress="hidden", concurrency_id="model")
         stop.click(studio.stop, None, status, cancels=[run_event], queue=False, api_name="stop")
     return demo
+
+
+class FrameSlider(gr.Slider):
+    """A frame-index slider whose range follows the uploaded video in the page, while API clients may
+    send any whole frame number ≥ 0: the handlers check it against the video itself, so /relight
+    accepts every valid range, not only the 0–1 of the slider's initial configuration."""
+
+    is_template = True  # drawn by the frontend's plain slider
+
+    def preprocess(self, payload: float) -> int:
+        if payload is None or not math.isfinite(float(payload)) or float(payload) < 0:
+            raise gr.Error(f"The frame number {payload} is not valid; use a whole number from 0.",
+                           print_exception=False)
+        return int(round(float(payload)))
 
 
 def launch_kwargs() -> dict:
@@ -166,22 +221,47 @@ def launch_kwargs() -> dict:
     return {"theme": THEME, "css": CSS}
 
 
+def _gallery_height(count: int, columns: int) -> int:
+    """Pixels for every row of a gallery of 2:1 thumbnails with a caption under each (left column width)."""
+    rows = max(1, math.ceil(count / columns))
+    return 40 + rows * 100
+
+
 def _show_video_row(path: str | None):
-    return gr.update(visible=bool(path) and Path(path).suffix.lower() in VIDEO_SUFFIXES)
+    """Video results, and the light sweep across the clip, only for a video (a still has no clip)."""
+    video = bool(path) and Path(path).suffix.lower() in VIDEO_SUFFIXES
+    return gr.update(visible=video), gr.update(visible=video) if video else gr.update(visible=False, value=False)
 
 
-def _mode_visibility(mode: str):
+def _mode_layout(mode: str):
+    """Show only what `mode` uses: its controls, its results, with its labels (ui.studio.MODE_VIEWS)."""
+    view = MODE_VIEWS.get(mode, MODE_VIEWS["Relight"])
     random = mode == RANDOM_MODE
-    return gr.update(visible=random), gr.update(visible=random), gr.update(visible=not random)
+    return (gr.update(visible=random), gr.update(visible=view.uses_probe), gr.update(label=view.input_label),
+            gr.update(label=view.input_result), gr.update(visible=bool(view.relit), label=view.relit or "Relit"),
+            gr.update(visible=view.albedo),
+            gr.update(visible=bool(view.relit), label=f"{view.relit or 'Relit'} video"),
+            gr.update(visible=view.albedo), gr.update(visible=bool(view.compare), label=view.compare or ""),
+            gr.update(visible=random))
 
 
-def _examples(studio: Studio, examples_dir: Path, input_file, probe_name, rotation, mode, outputs) -> None:
-    """Example inputs whose results were computed once by scripts/make_examples.py."""
+def _run_button(mode: str, input_ok: bool, probe_ok: bool):
+    """The run button: named after the mode; it waits while the upload or the needed probe cannot be used."""
+    view = MODE_VIEWS.get(mode, MODE_VIEWS["Relight"])
+    return gr.update(value=view.button, interactive=bool(input_ok) and (bool(probe_ok) or not view.uses_probe))
+
+
+def _examples(studio: Studio, examples_dir: Path, input_file, probe_name, rotation, mode, outputs,
+              light_controls) -> None:
+    """Example inputs whose results were computed once by scripts/make_examples.py. Clicking one also
+    drops an uploaded probe and resets exposure and colour temperature (`light_controls`), so the
+    controls describe the cached result."""
     manifest = json.loads((examples_dir / "manifest.json").read_text())
     manifest["root"] = str(examples_dir)
     rows = [[str(examples_dir / e["input"]), e["probe"], e["rotation"], e["mode"], e["name"]]
             for e in manifest["examples"]]
     example_name = gr.Textbox(visible=False, label="Example")
     gr.Examples(rows, [input_file, probe_name, rotation, mode, example_name],
-                outputs, fn=lambda *values: studio.show_example(manifest, values[-1]),
+                [*outputs, *light_controls],
+                fn=lambda *values: (*studio.show_example(manifest, values[-1]), None, 0, NEUTRAL_KELVIN),
                 run_on_click=True, cache_examples=False, label="Examples (results cached on disk)")

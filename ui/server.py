@@ -5,7 +5,9 @@ from __future__ import annotations
 import atexit
 import os
 import shutil
+import signal
 import tempfile
+import threading
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -19,6 +21,7 @@ class ServerOptions:
     host: str = "127.0.0.1"
     port: int | None = None               # None: the first free port from 7860
     model: str = "default"
+    precision: str | None = None          # None: the model's (normally auto); see relight_core/precision.py
     share: bool = False
     share_timeout_s: float = 5.0          # how long to try reaching the share server
     auth: tuple[str, str] | None = None
@@ -41,13 +44,18 @@ class ServerOptions:
 
 
 def prepare_environment(temp_dir: Path | None) -> Path:
-    """Point Gradio's uploads and VTK at the right places before they are imported; return the root."""
-    if temp_dir is None:
-        root = Path(tempfile.mkdtemp(prefix="unirelight-studio-"))
-        atexit.register(shutil.rmtree, root, ignore_errors=True)
-    else:
-        root = Path(temp_dir)
-        root.mkdir(parents=True, exist_ok=True)
+    """Point Gradio's uploads and VTK at the right places before they are imported; return the root.
+
+    The root is always a fresh folder the studio creates (mode 0700, so only this user reads
+    uploads and results) and removes at exit: under the system temp, or under `temp_dir` when
+    given, never `temp_dir` itself, whose other files must not become servable.
+    """
+    parent = None
+    if temp_dir is not None:
+        parent = Path(temp_dir)
+        parent.mkdir(parents=True, exist_ok=True)
+    root = Path(tempfile.mkdtemp(prefix="unirelight-studio-", dir=parent)).resolve()
+    atexit.register(shutil.rmtree, root, ignore_errors=True)
     os.environ["GRADIO_TEMP_DIR"] = str(root / "gradio")
     os.environ.setdefault("GRADIO_ANALYTICS_ENABLED", "False")
     os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
@@ -67,12 +75,18 @@ def share_server_reachable(timeout_s: float) -> bool:
 
 
 def start(options: ServerOptions, block: bool = True):
-    """Build and launch the studio; returns (demo, local_url, share_url) when not blocking."""
+    """Build and launch the studio; returns (demo, local_url, share_url) when not blocking.
+
+    Blocking, it serves until Ctrl+C or SIGTERM, then stops and removes its temp folder.
+    """
+    if block and _main_thread():
+        signal.signal(signal.SIGTERM, _terminate)  # from here on, like Ctrl+C (atexit cleans up)
     root = prepare_environment(options.temp_dir)
     from ui.layout import build_demo, launch_kwargs  # after the environment is set
     from ui.studio import Studio, StudioConfig
 
-    studio = Studio(StudioConfig(model=options.model, envmaps_dir=options.envmaps_dir,
+    studio = Studio(StudioConfig(model=options.model, precision=options.precision,
+                                 envmaps_dir=options.envmaps_dir,
                                  work_dir=root / "work", max_upload_mb=options.max_upload_mb,
                                  model_choice=options.visitors_choose_model))
     demo = build_demo(studio, options.examples_dir)
@@ -83,16 +97,50 @@ def start(options: ServerOptions, block: bool = True):
         print("* Could not reach the Gradio share server, so there is no public link "
               "(is this machine offline?). The studio keeps serving locally.", flush=True)
         share = False
+    # Only folders of files the studio itself writes are "allowed" (served inline): its work folder
+    # and the bundled examples. Uploads stay in Gradio's upload folder, which Gradio serves inline
+    # only for media types that cannot run script; FileHeaders enforces that on every file route.
+    from starlette.middleware import Middleware
+
+    from ui.security import ClientAddress, FileHeaders, LoginGuard
+
+    auth = None
+    if options.auth is not None:
+        auth = LoginGuard({options.auth[0]: options.auth[1]}).check  # failures are logged as warnings
     _, local_url, share_url = demo.launch(
-        server_name=options.host, server_port=options.port, share=share, auth=options.auth,
+        server_name=options.host, server_port=options.port, share=share, auth=auth,
         inbrowser=options.inbrowser, max_file_size=f"{options.max_upload_mb}mb",
-        allowed_paths=[str(root), str(options.examples_dir)], prevent_thread_lock=True,
+        allowed_paths=[str(studio.work_dir.resolve()), str(options.examples_dir)], prevent_thread_lock=True,
+        app_kwargs={"middleware": [Middleware(FileHeaders), Middleware(ClientAddress)]},
         show_error=True, footer_links=["api", "settings"], quiet=True, **launch_kwargs())
-    print(f"* UniRelight Studio is running at {local_url} (model: {options.model}; Ctrl+C to stop)", flush=True)
+    demo.studio_root = root  # the studio's own temp folder (tests and shutdown use it)
+    print(f"* UniRelight Studio is running at {local_url} (model: {options.model}, "
+          f"{studio.relighter().precision}; Ctrl+C to stop)", flush=True)
     if share and share_url is None:
         print("* The share link could not be created; the studio keeps serving locally.", flush=True)
     if share_url:
         print(f"* Public share link for reviewers: {share_url}", flush=True)
     if block:
-        demo.block_thread()
+        try:
+            demo.block_thread()  # returns on Ctrl+C, and on SIGTERM through _terminate
+        finally:
+            shutdown(demo)
     return demo, local_url, share_url
+
+
+def shutdown(demo) -> None:
+    """Stop serving and remove the studio's temp folder (uploads, results, work files)."""
+    demo.close(verbose=False)
+    root = getattr(demo, "studio_root", None)
+    if root is not None:
+        shutil.rmtree(root, ignore_errors=True)
+
+
+def _terminate(signum, frame):
+    """SIGTERM is handled like Ctrl+C: stop serving, clean up, exit."""
+    raise KeyboardInterrupt
+
+
+def _main_thread() -> bool:
+    return threading.current_thread() is threading.main_thread()
+

@@ -6,12 +6,13 @@ relight_core; the handlers only pick files, call the core and report errors in o
 
 from __future__ import annotations
 
+import html
 import shutil
 import threading
 import time
 import uuid
 from collections.abc import Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import gradio as gr
@@ -20,6 +21,7 @@ import numpy as np
 from relight_core import lighting, media, preview
 from relight_core.errors import InputError
 from relight_core.pipeline import ChunkDone, Finished, Progress, Relighter, RelightRequest
+from relight_core.upsample import guided_ratio_upsample
 from ui.probes import ProbeLibrary
 
 VIDEO_SUFFIXES = (".mp4", ".mov", ".webm", ".mkv", ".avi", ".m4v")
@@ -31,6 +33,29 @@ MODES = {  # label shown in the UI → pipeline mode
     "Random illumination": "random",
 }
 RANDOM_MODE = "Random illumination"
+
+
+@dataclass(frozen=True)
+class ModeView:
+    """What the page shows in one mode: the run button's name, and which controls and results it uses."""
+
+    button: str                  # the run button's label
+    uses_probe: bool             # the probe panel (gallery, rotation, exposure, colour, preview)
+    relit: str | None            # label of the relit result, None when the mode makes none
+    albedo: bool                 # shows the albedo result
+    compare: str | None          # label of the before/after slider, None when hidden
+    input_label: str = "Image or video"
+    input_result: str = "Input"  # label of the input still beside the results
+
+
+MODE_VIEWS = {
+    "Relight": ModeView("Relight", True, "Relit", True, "Before / after"),
+    "Albedo only": ModeView("Extract albedo", False, None, True, None),
+    "Render from albedo": ModeView("Render from albedo", True, "Rendered", False, "Albedo / rendered",
+                                   input_label="Albedo image or video (rendered under the probe)",
+                                   input_result="Albedo (input)"),
+    RANDOM_MODE: ModeView("Make random illuminations", False, "Relit (last seed)", True, None),
+}
 CLEAR = gr.update(value=None)  # a RunOutputs field set to this empties the component
 
 
@@ -39,11 +64,13 @@ class StudioConfig:
     """What the studio serves and where it keeps its files."""
 
     model: str = "default"              # "default", a preset name or a model directory
+    precision: str | None = None        # auto | fp32 | bf16 | fp16; None: the model's (normally auto)
     envmaps_dir: Path = Path("envmaps")  # bundled probes
     work_dir: Path = Path("studio-work")  # per-job outputs, deleted once Gradio has copied them
     max_upload_mb: int = 500            # larger uploads are refused with a message
     max_seeds: int = 8                  # random illumination: at most this many seeds per run
     model_choice: bool = True           # may requests name another model than `model`?
+    full_resolution: bool = True        # results at the input's resolution (guided ratio upsampling)
 
 
 @dataclass(frozen=True)
@@ -73,6 +100,24 @@ def status_html(fraction: float, text: str, state: str = "running") -> str:
     percent = max(0.0, min(1.0, fraction)) * 100
     return (f'<div class="run-status {state}"><div class="run-bar"><div style="width:{percent:.1f}%"></div>'
             f'</div><div class="run-text">{text}</div></div>')
+
+
+def precision_note(relighter: Relighter) -> str:
+    """"fp32 (auto)": the precision the model computes in, and how it was chosen."""
+    how = "auto, by this machine" if relighter.precision_choice == "auto" else "as asked"
+    return f"Precision: **{relighter.precision}** ({how})"
+
+
+def field_error(message: str) -> str:
+    """A problem shown in words beside the control that has it (it stays until the control changes)."""
+    return f'<div class="field-error" role="alert">⚠ {html.escape(message)}</div>'
+
+
+def field_note(text: str) -> str:
+    """A plain line beside a control (HTML; **bold** marks a name)."""
+    parts = html.escape(text).split("**")
+    return '<div class="field-note">' + "".join(
+        f"<b>{p}</b>" if i % 2 else p for i, p in enumerate(parts)) + "</div>"
 
 
 def _fail(exc: Exception, *paths: str | Path | None) -> gr.Error:
@@ -107,16 +152,17 @@ class Studio:
         with self._model_lock:
             if model not in self._relighters:
                 self._relighters.clear()  # free the previous model before loading the next
-                self._relighters[model] = Relighter.load(model)
+                self._relighters[model] = Relighter.load(model, precision=self.config.precision)
             return self._relighters[model]
 
     def model_notice(self) -> str:
         """A visible line about the model in use (loud when its weights are untrained)."""
-        spec = self.relighter().spec
+        relighter = self.relighter()
+        spec = relighter.spec
         if not spec.trained:
             return (f"⚠️ Model **{spec.name}** has untrained (random) weights: results look like noise. "
-                    "Pass `--model DIR` with trained weights for real relighting.")
-        return f"Model: **{spec.name}**"
+                    f"Pass `--model DIR` with trained weights for real relighting. {precision_note(relighter)}")
+        return f"Model: **{spec.name}** · {precision_note(relighter)}"
 
     # -- input ----------------------------------------------------------------------------------
 
@@ -127,22 +173,24 @@ class Studio:
                            "upload a smaller or shorter file.", print_exception=False)
 
     def input_changed(self, path: str | None):
-        """Show the upload at once; for videos, reveal the frame range set to the first chunk."""
+        """Show the upload at once; for videos, reveal the frame range set to the whole clip."""
         hidden = gr.update(visible=False)
         if not path:
             return gr.update(value=None, visible=True), gr.update(value=None, visible=False), hidden, \
                 gr.update(), gr.update(), ""
         self.check_upload(path)
         try:
-            if Path(path).suffix.lower() in VIDEO_SUFFIXES:
+            if self._is_video(path):
                 info = media.probe_video(path)
+                if info.num_frames < 2:  # a one-value frame slider cannot be shown
+                    raise InputError(f"{Path(path).name} has only {info.num_frames} frame; upload it as an "
+                                     "image (PNG or JPEG) or upload a longer video.")
                 last = info.num_frames - 1
-                default_end = min(last, self.relighter().spec.chunk_frames - 1)
                 text = (f"Video: {info.width}×{info.height}, {info.num_frames} frames at {info.fps:.3g} fps"
                         f"{', with audio' if info.has_audio else ''}.")
                 return (gr.update(value=None, visible=False), gr.update(value=path, visible=True),
                         gr.update(visible=True),
-                        gr.update(maximum=last, value=0), gr.update(maximum=last, value=default_end), text)
+                        gr.update(maximum=last, value=0), gr.update(maximum=last, value=last), text)
             loaded = media.load_media(path)
         except InputError as exc:
             raise _fail(exc, path) from exc
@@ -151,6 +199,17 @@ class Studio:
         height, width = loaded.frames.shape[1:3]
         return (gr.update(value=str(shown), visible=True), gr.update(value=None, visible=False), hidden,
                 gr.update(), gr.update(), f"Image: {width}×{height}.")
+
+    def input_checked(self, path: str | None):
+        """`input_changed` for the page: a file that cannot be used is named in words under the upload
+        (no toast), and the last value says whether the run may start."""
+        try:
+            *shown, info = self.input_changed(path)
+        except gr.Error as exc:
+            cleared = gr.update(value=None)
+            return (gr.update(value=None, visible=True), gr.update(value=None, visible=False),
+                    gr.update(visible=False), cleared, cleared, field_error(exc.message), False)
+        return (*shown, field_note(info) if info else "", True)
 
     def estimate(self, path: str | None, mode: str, frame_start: float, frame_end: float, size: int,
                  steps: float, num_seeds: float, model: str) -> str:
@@ -161,8 +220,8 @@ class Studio:
             frames = self._load_media(path, frame_start, frame_start, size).frames  # one frame: the size
             count = self._frame_count(path, frame_start, frame_end)
             relighter = self.relighter(model)
-        except (InputError, OSError):
-            return ""
+        except (InputError, OSError, gr.Error):
+            return "No time estimate: the file above cannot be used."
         height, width = frames.shape[1:3]
         runs = int(num_seeds) if mode == RANDOM_MODE else 1
         seconds = runs * relighter.estimate_seconds(count, height, width, int(steps))
@@ -189,13 +248,34 @@ class Studio:
                                print_exception=False) from None
         return None
 
+    def probe_status(self, name: str | None, upload: str | None) -> tuple[str, bool]:
+        """The line under the probe controls: the light in use, or in words why an uploaded probe
+        cannot be used; and whether it can."""
+        if upload:
+            try:
+                self.probes.load(self.probe_path(name, upload))
+            except InputError as exc:
+                return field_error(_fail(exc, upload).message), False
+            except gr.Error as exc:
+                return field_error(exc.message), False
+            return field_note(f"Light: your probe **{Path(upload).name}** (the gallery is not used)"), True
+        if name in self.probes.names:
+            return field_note(f"Light: **{name}**"), True
+        return field_error("Pick a light probe from the gallery or upload one."), False
+
     def light_preview(self, name: str | None, upload: str | None, rotation: float, exposure: float,
-                      mode: str, rotate_light: bool = False, sweep_start: float = 0.0):
-        """The sphere + panorama preview of the probe at this rotation and exposure."""
-        if mode in ("Albedo only", RANDOM_MODE):
+                      mode: str, rotate_light: bool = False, sweep_start: float = 0.0,
+                      temperature: float = lighting.NEUTRAL_KELVIN):
+        """The sphere + panorama preview of the probe at this rotation, exposure and colour temperature."""
+        if not MODE_VIEWS.get(mode, MODE_VIEWS["Relight"]).uses_probe:
             return None
         # What the first frame gets (lighting.frame_rotations: the slider's yaw plus the sweep's start).
-        rotation = lighting.frame_rotations(1, float(rotation), bool(rotate_light), (float(sweep_start), 0.0))[0]
+        try:
+            rotation = lighting.frame_rotations(1, float(rotation), bool(rotate_light),
+                                                (float(sweep_start), 0.0))[0]
+            temperature = lighting.check_temperature(temperature)
+        except InputError as exc:
+            raise _fail(exc) from exc
         path = self.probe_path(name, upload)
         if path is None:
             return None
@@ -203,14 +283,24 @@ class Studio:
             probe = self.probes.load(path)
         except InputError as exc:
             raise _fail(exc, path) from exc
-        return preview.render_preview(probe, float(rotation), intensity=2.0 ** float(exposure))
+        return preview.render_preview(probe, float(rotation), intensity=2.0 ** float(exposure),
+                                      temperature=temperature)
+
+    def light_preview_quiet(self, *args):
+        """`light_preview` for the page: a probe that cannot be used shows no preview; the line under the
+        probe controls (`probe_status`) says why, so no second message appears."""
+        try:
+            return self.light_preview(*args)
+        except gr.Error:
+            return None
 
     # -- run ------------------------------------------------------------------------------------
 
     def run(self, path: str | None, mode: str, probe_name: str | None, probe_upload: str | None,
             rotation: float, exposure: float, rotate_light: bool, sweep_start: float, sweep_end: float,
             num_seeds: float, frame_start: float, frame_end: float, size: int, steps: float, sampler: str,
-            seed: float, guidance: float, model: str, request: gr.Request) -> Iterator[tuple]:
+            seed: float, guidance: float, model: str, temperature: float,
+            request: gr.Request) -> Iterator[tuple]:
         """Relight the input; stream progress and previews, then the final files."""
         if not path:
             raise gr.Error("Upload an image or a video first.", print_exception=False)
@@ -222,7 +312,8 @@ class Studio:
             yield from self._run(job, stop, path, MODES.get(mode, "relight"), probe_name, probe_upload,
                                  float(rotation), 2.0 ** float(exposure), bool(rotate_light),
                                  (float(sweep_start), float(sweep_end)), int(num_seeds), frame_start,
-                                 frame_end, int(size), int(steps), sampler, int(seed), float(guidance), model)
+                                 frame_end, int(size), int(steps), sampler, int(seed), float(guidance), model,
+                                 float(temperature))
         except InputError as exc:
             raise _fail(exc, path, probe_upload) from exc
         finally:
@@ -236,11 +327,14 @@ class Studio:
 
     def _run(self, job: Path, stop: threading.Event, path, mode, probe_name, probe_upload, rotation,
              intensity, rotate_light, sweep, num_seeds, frame_start, frame_end, size, steps, sampler, seed,
-             guidance, model) -> Iterator[tuple]:
+             guidance, model, temperature=lighting.NEUTRAL_KELVIN) -> Iterator[tuple]:
         started = time.monotonic()
+        view = MODE_VIEWS[next(label for label, name in MODES.items() if name == mode)]
         relighter = self.relighter(model)
         loaded = self._load_media(path, frame_start, frame_end, size)
         frames = loaded.frames
+        full = self._full_frames(path, frame_start, frame_end) if self.config.full_resolution else None
+        shown = frames if full is None else full
         probe = None
         if mode in ("relight", "render"):
             probe_file = self.probe_path(probe_name, probe_upload)
@@ -255,8 +349,8 @@ class Studio:
         audio = (loaded.audio_path, loaded.audio_start)
         # The still beside Relit and Albedo is the frame their stills show (a video's middle one).
         middle = frames.shape[0] // 2
-        input_still = self._save(job, "input", frames[middle:middle + 1], None, audio, False)
-        input_clip = self._save(job, "input", frames, loaded.fps, audio, True) if is_video else None
+        input_still = self._save(job, "input", shown[middle:middle + 1], None, audio, False)
+        input_clip = self._save(job, "input", shown, loaded.fps, audio, True) if is_video else None
         yield RunOutputs(status=status_html(0.0, "Starting…"), input_image=input_still, input_video=input_clip,
                          relit_image=CLEAR, albedo_image=CLEAR, relit_video=CLEAR, albedo_video=CLEAR,
                          compare=CLEAR, downloads=CLEAR, seeds=[] if mode == "random" else None).values()
@@ -267,7 +361,7 @@ class Studio:
             request = RelightRequest(
                 frames=frames, fps=loaded.fps, audio_path=loaded.audio_path, mode=mode, probe=probe,
                 rotation=rotation, rotate_light=rotate_light, sweep=sweep, intensity=intensity,
-                albedo=frames if mode == "render" else None, steps=steps, sampler=sampler, seed=run_seed,
+                temperature=temperature, albedo=frames if mode == "render" else None, steps=steps, sampler=sampler, seed=run_seed,
                 guidance=guidance, should_stop=stop.is_set)
             relit_so_far = np.zeros((0, *frames.shape[1:]), np.float32)  # finished chunks, stitched
             result = None
@@ -277,10 +371,12 @@ class Studio:
                     total = len(seeds) * event.num_chunks * event.total_steps
                     yield RunOutputs(
                         status=status_html(done / total, _progress_text(event, run_index, len(seeds), run_seed)),
-                        relit_image=self._save_preview(job, "relit-preview", event.relit_preview),
-                        albedo_image=self._save_preview(job, "albedo-preview", event.albedo_preview),
+                        relit_image=self._save_preview(job, "relit-preview", event.relit_preview)
+                        if view.relit else None,
+                        albedo_image=self._save_preview(job, "albedo-preview", event.albedo_preview)
+                        if view.albedo else None,
                     ).values()
-                elif isinstance(event, ChunkDone) and is_video and event.num_chunks > 1:
+                elif isinstance(event, ChunkDone) and is_video and event.num_chunks > 1 and view.relit:
                     # Chunks overlap: each one replaces the frames from its start on.
                     relit_so_far = np.concatenate([relit_so_far[:event.start], event.relit])
                     partial = self._save(job, f"relit-part{event.chunk}", relit_so_far, loaded.fps,
@@ -291,7 +387,10 @@ class Studio:
             if result is None:  # stopped
                 yield RunOutputs(status=status_html(0.0, "Stopped.", "stopped")).values()
                 return
-            files = self._save_result(job, result, audio, is_video,
+            if full is not None:  # the model's size → the input's, by guided ratio transfer (upsample.py)
+                result = replace(result, relit=guided_ratio_upsample(full, frames, result.relit),
+                                 albedo=guided_ratio_upsample(full, frames, result.albedo))
+            files = self._save_result(job, result, audio, is_video, view,
                                       suffix=f"-seed{run_seed}" if mode == "random" else "")
             downloads += files["downloads"]
             if mode == "random":
@@ -301,9 +400,12 @@ class Studio:
                                    f"Done in {_duration(time.monotonic() - started)}." if run_index + 1 == len(seeds)
                                    else f"Seed {run_seed} done.", "done" if run_index + 1 == len(seeds)
                                    else "running"),
-                relit_image=files["relit_still"], albedo_image=files["albedo_still"],
-                relit_video=files.get("relit_video"), albedo_video=files.get("albedo_video"),
-                compare=None if is_video else (input_still, files["relit_still"]),
+                relit_image=files["relit_still"] if view.relit else None,
+                albedo_image=files["albedo_still"] if view.albedo else None,
+                relit_video=files.get("relit_video") if view.relit else None,
+                albedo_video=files.get("albedo_video") if view.albedo else None,
+                # A video's slider compares the middle frames, the stills shown beside it.
+                compare=(input_still, files["relit_still"]) if view.compare else None,
                 seeds=list(gallery) if mode == "random" else None,
                 downloads=list(downloads),
             ).values()
@@ -322,7 +424,9 @@ class Studio:
             input_video=str(root / entry["input"]) if video else None,
             relit_image=out.get("relit_still"), albedo_image=out.get("albedo_still"),
             relit_video=out.get("relit_video"), albedo_video=out.get("albedo_video"),
-            compare=None if video else (str(root / entry["input"]), out["relit_still"]),
+            # Always set, so an earlier example's or run's before/after never stays on screen.
+            compare=CLEAR if video else (str(root / entry["input"]), out["relit_still"]),
+            seeds=CLEAR,
             downloads=[v for k, v in out.items() if k in entry.get("downloads", [])],
         ).values()
 
@@ -348,9 +452,37 @@ class Studio:
     def _load_media(self, path, frame_start, frame_end, size: int) -> media.Media:
         """The frames to relight, at the working resolution (videos: the chosen range only)."""
         start, end = int(frame_start or 0), int(frame_end or 0)
-        if Path(path).suffix.lower() in VIDEO_SUFFIXES and end < start:
-            raise InputError(f"The last frame ({end}) comes before the first ({start}); set the frame range again.")
-        return media.load_media(path, start=start, end=end + 1, size=int(size))
+        if self._is_video(path):
+            if end < start:
+                raise InputError(f"The last frame ({end}) comes before the first ({start}); "
+                                 "set the frame range again.")
+            count = media.probe_video(path).num_frames
+            if end >= count:
+                raise InputError(f"The last frame ({end}) is past the end of {Path(path).name}, which has "
+                                 f"{count} frames (0 to {count - 1}); set the frame range again.")
+        return media.load_media(path, start=start, end=end + 1, size=int(size) if size else None)
+
+    def _full_frames(self, path, frame_start, frame_end) -> np.ndarray | None:
+        """The chosen frames at the file's own resolution; None when that is too large to hold."""
+        try:
+            return self._load_media(path, frame_start, frame_end, None).frames
+        except InputError:
+            return None
+
+    @staticmethod
+    def _is_video(path) -> bool:
+        """Whether the upload is a video; InputError when its content and its name disagree
+        (the page treats a file by its name, the readers by its content)."""
+        named_video = Path(path).suffix.lower() in VIDEO_SUFFIXES
+        if not named_video and media.media_kind(path) == "video":
+            raise InputError(f"{Path(path).name} is a video named like an image; give it its video extension "
+                             "(.mp4, .mov, .webm) and upload it again.")
+        if named_video:
+            media.probe_video(path)  # a file that is no video at all gets the reader's own sentence
+            if media.media_kind(path) != "video":
+                raise InputError(f"{Path(path).name} is a still image named like a video; give it its image "
+                                 "extension (.png, .jpg) and upload it again.")
+        return named_video
 
     @staticmethod
     def _save_preview(job: Path, name: str, frame: np.ndarray) -> str:
@@ -370,21 +502,28 @@ class Studio:
             media.save_image(path, frames[0])
         return str(path)
 
-    def _save_result(self, job: Path, result, audio: tuple, is_video: bool, suffix: str = "") -> dict:
+    def _save_result(self, job: Path, result, audio: tuple, is_video: bool, view: ModeView,
+                     suffix: str = "") -> dict:
+        """The result's stills, videos and downloads: only the kinds the mode makes (`view`)."""
         files: dict = {}
         middle = result.relit.shape[0] // 2
         files["relit_still"] = str(job / f"relit{suffix}.png")
         files["albedo_still"] = str(job / f"albedo{suffix}.png")
         media.save_image(files["relit_still"], result.relit[middle])
         media.save_image(files["albedo_still"], result.albedo[middle])
+        made = {"relit": result.relit} if view.relit else {}
+        if view.albedo:
+            made["albedo"] = result.albedo
         if is_video:
-            files["relit_video"] = self._save(job, f"relit{suffix}", result.relit, result.fps, audio, True)
-            files["albedo_video"] = self._save(job, f"albedo{suffix}", result.albedo, result.fps, audio, True)
-            files["downloads"] = [files["relit_video"], files["albedo_video"]]
+            for kind, frames in made.items():
+                files[f"{kind}_video"] = self._save(job, f"{kind}{suffix}", frames, result.fps, audio, True)
+            files["downloads"] = [files[f"{kind}_video"] for kind in made]
         else:
-            exr = job / f"relit{suffix}-linear.exr"
-            media.save_exr(exr, media.srgb_to_linear(result.relit[0]))
-            files["downloads"] = [files["relit_still"], files["albedo_still"], str(exr)]
+            files["downloads"] = [files[f"{kind}_still"] for kind in made]
+            if view.relit:
+                exr = job / f"relit{suffix}-linear.exr"
+                media.save_exr(exr, media.srgb_to_linear(result.relit[0]))
+                files["downloads"].append(str(exr))
         return files
 
 

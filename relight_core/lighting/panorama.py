@@ -32,7 +32,10 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from relight_core.errors import InputError
+
 DEFAULT_ROTATION = 180.0  # released `env_rot` default, degrees of yaw
+MAX_ROTATION_DEG = 3600.0  # ten turns; a larger yaw or sweep end is a typo (same as relight_core.arguments)
 
 
 def _as_tensor(x) -> torch.Tensor:
@@ -128,7 +131,14 @@ def rotation_sweep(num_frames: int, start: float = 0.0, end: float = 360.0) -> l
 
 def frame_rotations(num_frames: int, rotation: float = DEFAULT_ROTATION, rotate_light: bool = False,
                     sweep: tuple[float, float] = (0.0, 360.0)) -> list[float]:
-    """The yaw of each frame: `rotation`, plus the sweep angle of that frame when the light rotates."""
+    """The yaw of each frame: `rotation`, plus the sweep angle of that frame when the light rotates.
+
+    Angles must be finite and within ±MAX_ROTATION_DEG (ten turns); others raise InputError.
+    """
+    for name, value in (("light rotation", rotation), ("sweep start", sweep[0]), ("sweep end", sweep[1])):
+        if not (math.isfinite(float(value)) and abs(float(value)) <= MAX_ROTATION_DEG):
+            raise InputError(f"The {name} {value} is not a usable angle; use a finite number of degrees "
+                             f"between -{MAX_ROTATION_DEG:g} and {MAX_ROTATION_DEG:g}.")
     angles = rotation_sweep(num_frames, *sweep) if rotate_light else [0.0] * num_frames
     return [float(rotation) + angle for angle in angles]
 
@@ -177,3 +187,76 @@ def probe_frames(
         uv = _camera_uv(H, W, cams[t]) if per_frame_camera else fixed_uv
         frames[t] = _sample_uv(probe, _yawed(uv, yaw))
     return frames
+
+
+def downsample_panorama(panoramas: torch.Tensor, size: int) -> torch.Tensor:
+    """[T, H, W, 3] → [T, size, size, 3] by area averaging (energy-preserving: a sun stays bright)."""
+    x = _as_tensor(panoramas).float().permute(0, 3, 1, 2)                  # (T, 3, H, W)
+    x = torch.nn.functional.interpolate(x, size=(size, size), mode="area")
+    return x.permute(0, 2, 3, 1).contiguous()
+
+
+def upsample_panorama(small: torch.Tensor, H: int, W: int) -> torch.Tensor:
+    """[T, s, s, 3] → [T, H, W, 3], bilinear with pixel centres aligned (align_corners=False)."""
+    x = _as_tensor(small).float().permute(0, 3, 1, 2)
+    x = torch.nn.functional.interpolate(x, size=(H, W), mode="bilinear", align_corners=False)
+    return x.permute(0, 2, 3, 1).contiguous()
+
+
+def lowpass_panorama(panoramas: torch.Tensor, size: int | None) -> torch.Tensor:
+    """Camera-frame panoramas [T, H, W, 3] seen through a `size`² grid, back at H×W.
+
+    A model trained with a lighting resolution (`ModelSpec.lighting_size`) sees its probes this way
+    in training and at inference alike; None or a size ≥ H and W returns the input unchanged.
+    """
+    T, H, W, _ = panoramas.shape
+    if size is None or (size >= H and size >= W):
+        return panoramas
+    return upsample_panorama(downsample_panorama(panoramas, size), H, W)
+
+
+def _panorama_axis_matrix(src: int, dst: int, periodic: bool) -> torch.Tensor:
+    """[dst, src] weights re-gridding one axis of the panorama grid (`latlong_directions`).
+
+    Rows sit at θ = π·linspace(1/n, 1 − 1/n, n) (clamped at the poles), columns at
+    φ = π·linspace(−1 + 1/n, 1 − 1/n, n) (periodic). Each output sample averages ⌈ratio⌉ bilinear
+    taps spread over its own cell, a box prefilter when shrinking, plain bilinear when enlarging.
+    """
+    def grid(n: int) -> np.ndarray:
+        return np.linspace(-1 + 1 / n, 1 - 1 / n, n) if periodic else np.linspace(1 / n, 1 - 1 / n, n)
+
+    source, target = grid(src), grid(dst)
+    source_step = 2 / src if periodic else (source[1] - source[0] if src > 1 else 1.0)
+    cell = 2 / dst if periodic else (target[1] - target[0] if dst > 1 else 1.0)
+    taps = max(1, math.ceil(cell / source_step - 1e-9))
+    points = target[:, None] + ((np.arange(taps) + 0.5) / taps - 0.5) * cell          # [dst, taps]
+    if periodic:
+        index = (points - source[0]) / source_step
+        low = np.floor(index)
+        frac, low = index - low, low.astype(np.int64) % src
+        high = (low + 1) % src
+    else:
+        index = np.interp(points, source, np.arange(src, dtype=np.float64))           # clamps at the poles
+        low = np.minimum(np.floor(index).astype(np.int64), src - 1)
+        frac, high = index - low, np.minimum(low + 1, src - 1)
+    weights = np.zeros((dst, src))
+    rows = np.repeat(np.arange(dst), taps)
+    np.add.at(weights, (rows, low.ravel()), (1 - frac).ravel() / taps)
+    np.add.at(weights, (rows, high.ravel()), frac.ravel() / taps)
+    return torch.from_numpy(weights).float()
+
+
+def resize_panorama(panoramas, H: int, W: int) -> torch.Tensor:
+    """Camera-frame panoramas [..., h, w, 3] (the `probe_in_camera` grid) re-gridded to [..., H, W, 3].
+
+    Each output pixel holds the light from its own camera-frame direction (`panorama_directions(H, W)`),
+    so a panorama rendered at one frame size can condition a model run at another. The same size
+    returns the input unchanged; shrinking box-filters so a small sun keeps its energy.
+    """
+    panoramas = _as_tensor(panoramas)
+    h, w = panoramas.shape[-3:-1]
+    if (h, w) == (H, W):
+        return panoramas
+    rows = _panorama_axis_matrix(h, H, periodic=False)
+    cols = _panorama_axis_matrix(w, W, periodic=True)
+    return torch.einsum("Ih,...hwc,Jw->...IJc", rows, panoramas, cols).contiguous()

@@ -11,12 +11,16 @@ import re
 
 os.environ.setdefault("OPENCV_IO_ENABLE_OPENEXR", "1")  # must precede the cv2 import
 
+_OPENCV_QUIET = "OPENCV_LOG_LEVEL" not in os.environ  # our one-sentence errors replace OpenCV's log lines
+
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
-import OpenEXR  # noqa: E402
 import torch  # noqa: E402
 
 from relight_core.errors import InputError  # noqa: E402
+
+if _OPENCV_QUIET:  # e.g. "[ERROR:0@0.4] global loadsave.cpp ..." before our message for a truncated .hdr
+    cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
 from relight_core.lighting.panorama import panorama_directions  # noqa: E402
 
 HDR_MAX = 65504.0  # largest finite half float: the released clamp
@@ -93,6 +97,8 @@ def _check_size(path: str, h: int, w: int) -> None:
 
 
 def _read_exr(path: str) -> np.ndarray:
+    import OpenEXR  # here, not at the top: lighting maths must import without an EXR reader
+
     try:
         with OpenEXR.File(path, header_only=True) as f:
             (x0, y0), (x1, y1) = f.header()["dataWindow"]
@@ -144,8 +150,8 @@ def load_probe(path, intensity: float = 1.0) -> torch.Tensor:
     """Read an .exr/.hdr lat-long probe (detected by content) -> cleaned linear [h, w, 3] float32."""
     path = os.fspath(path)
     name = os.path.basename(path)
-    if not np.isfinite(intensity) or intensity < 0:
-        raise InputError(f"The light intensity {intensity} is invalid; use a finite number ≥ 0.")
+    if not np.isfinite(intensity) or intensity <= 0:  # 0 would light the scene with black
+        raise InputError(f"The light intensity {intensity} is invalid; use a finite number above 0.")
     if not os.path.isfile(path):
         raise InputError(f"The light probe {path} does not exist; pick an existing .exr or .hdr file.")
     with open(path, "rb") as f:

@@ -1,9 +1,11 @@
 """Video tokenizers: pixels [B,3,T,H,W] in [-1,1] <-> latents [B,16,t,h,w] scaled by sigma_data.
 
-Two implementations share the `Tokenizer` protocol:
+Three implementations share the `Tokenizer` protocol:
 
 * `CausalVideoAutoencoder` — the project's small trainable tokenizer (8× space, causal 1/2/4/8× time,
   16 channels), cheap enough for a laptop CPU;
+* `PixelTokenizer` — fixed, lossless space-to-depth patches (8× space, no time compression,
+  3·8² = 192 channels): the default model's tokenizer, nothing to train;
 * `CosmosJITTokenizer` — the released Cosmos CV8x8x8 TorchScript encoder/decoder pair that the
   UniRelight 7B weights were trained with.
 
@@ -37,6 +39,7 @@ from relight_core.tokenizer.causal_ae import (
     tokenizer_loss,
 )
 from relight_core.tokenizer.cosmos_jit import CosmosJITTokenizer
+from relight_core.tokenizer.pixel import PixelTokenizer
 
 __all__ = [
     "SIGMA_DATA",
@@ -44,6 +47,7 @@ __all__ = [
     "TOKENIZER_PRESETS",
     "CausalVideoAutoencoder",
     "CosmosJITTokenizer",
+    "PixelTokenizer",
     "Tokenizer",
     "TokenizerConfig",
     "build_tokenizer",
@@ -70,6 +74,7 @@ def build_tokenizer(
     """Build a tokenizer from a JSON-able spec; file names are relative to weights_dir.
 
     `{"type": "causal-ae", "preset": "small", "weights": "tokenizer.safetensors", **config fields}`
+    or `{"type": "pixel", "patch": 8}`
     or `{"type": "cosmos-jit", "encoder": "encoder.jit", "decoder": "decoder.jit",
     "mean_std": "mean_std.pt", "image_mean_std": "image_mean_std.pt", "dtype": "bfloat16"}`.
     """
@@ -90,6 +95,11 @@ def build_tokenizer(
         if weights is not None:
             model.load_state_dict(load_file(_resolve(weights, weights_dir)))
         return model.to(device).eval()
+    if kind == "pixel":
+        unknown = sorted(set(spec) - {"patch", "scale"})
+        if unknown:
+            raise InputError(f"Unknown pixel tokenizer keys {unknown}: use only patch and scale.")
+        return PixelTokenizer(int(spec.get("patch", 8)), float(spec.get("scale", 1.0))).to(device).eval()
     if kind == "cosmos-jit":
         dtype = getattr(torch, spec.get("dtype", "bfloat16"), None)
         if not isinstance(dtype, torch.dtype):
@@ -103,4 +113,4 @@ def build_tokenizer(
             dtype=dtype,
             device=device,
         )
-    raise InputError(f"Unknown tokenizer type {kind!r}: use 'causal-ae' or 'cosmos-jit'.")
+    raise InputError(f"Unknown tokenizer type {kind!r}: use 'causal-ae', 'pixel' or 'cosmos-jit'.")

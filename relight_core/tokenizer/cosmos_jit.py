@@ -77,6 +77,13 @@ class CosmosJITTokenizer:
             parameter.requires_grad_(False)
         return module
 
+    def set_dtype(self, dtype: torch.dtype) -> None:
+        """Compute in `dtype` from now on (the Relighter's precision; the spec's dtype is only a default)."""
+        if dtype != self.dtype:
+            self.dtype = dtype
+            self.encoder.to(dtype)
+            self.decoder.to(dtype)
+
     def latent_frames(self, num_frames: int) -> int:
         """Number of latent frames t for T pixel frames."""
         return latent_frames(num_frames, self.temporal_factor)

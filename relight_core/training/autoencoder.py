@@ -16,6 +16,7 @@ import torch
 from safetensors.torch import save_file
 
 from relight_core.data.dataset import RelightDataset
+from relight_core.precision import autocast, resolve_precision
 from relight_core.tokenizer import TOKENIZER_PRESETS, CausalVideoAutoencoder, tokenizer_loss
 from relight_core.training.loop import (
     LOG_FILE,
@@ -56,6 +57,7 @@ class TokenizerTrainConfig:
     val_every: int = 250
     checkpoint_minutes: float = 5.0
     seed: int = 0
+    precision: str = "auto"              # compute precision (fp32 weights, bf16 autocast where faster)
 
 
 def crops_from(sample: dict, streams: list[str], crop: int, generator: torch.Generator) -> list[torch.Tensor]:
@@ -94,14 +96,18 @@ def tokenizer_batch(dataset: RelightDataset, size: int, crop: int, generator: to
 
 
 @torch.no_grad()
-def validation_l1(model: CausalVideoAutoencoder, dataset: RelightDataset, samples: int = 4) -> float:
-    """Mean L1 of full-frame reconstructions (posterior mean) of the first samples' streams."""
+def validation_l1(model: CausalVideoAutoencoder, dataset: RelightDataset, samples: int = 4,
+                  dtype: torch.dtype | None = None) -> float:
+    """Mean L1 of full-frame reconstructions (posterior mean) of the first samples' streams.
+
+    Computed in `dtype` (default: the `auto` precision of this CPU, precision.py)."""
+    dtype = dtype or resolve_precision("auto", "cpu")
     model.eval()
     total, count = 0.0, 0
     for index in range(min(samples, len(dataset))):
         sample = dataset[index]
         video = torch.stack([sample[n] for n in available_streams(sample)])         # (S, 3, T, H, W)
-        with torch.autocast("cpu", dtype=torch.bfloat16):
+        with autocast(dtype):
             recon = model.decode_raw(model.posterior(video)[0]).float()
         total += (recon.clamp(-1, 1) - video).abs().mean().item()
         count += 1
@@ -112,6 +118,7 @@ def validation_l1(model: CausalVideoAutoencoder, dataset: RelightDataset, sample
 def train_tokenizer(config: TokenizerTrainConfig, progress: bool = True) -> Path:
     """Train (or resume) a tokenizer run; returns the final weights, <run>/ckpt/tokenizer.safetensors."""
     run = Path(config.run)
+    dtype = resolve_precision(config.precision, "cpu")
     videos = RelightDataset(config.data, "train", clip_frames=config.clip_frames, seed=config.seed)
     images = RelightDataset(config.data, "train", clip_frames=1, seed=config.seed + 1)
     test_dir = Path(config.data) / "test"
@@ -144,7 +151,7 @@ def train_tokenizer(config: TokenizerTrainConfig, progress: bool = True) -> Path
                                 config.crop, generator)
         lr = set_lr(optimizer, config.lr, step, config.warmup)
         torch.manual_seed(int(torch.randint(0, 2 ** 31 - 1, (1,), generator=generator)))  # posterior sampling
-        with torch.autocast("cpu", dtype=torch.bfloat16):
+        with autocast(dtype):
             losses = tokenizer_loss(model, video, config.kl_weight)
         optimizer.zero_grad(set_to_none=True)
         losses["loss"].backward()
@@ -161,12 +168,13 @@ def train_tokenizer(config: TokenizerTrainConfig, progress: bool = True) -> Path
                 print(f"tokenizer step {step}: loss {record['loss']:.4f} l1 {record['l1']:.4f} "
                       f"({clock.elapsed():.0f}s)", flush=True)
         if val is not None and step % config.val_every == 0:
-            log.write(step=step, val_l1=validation_l1(model, val), seconds=round(clock.elapsed(), 1))
+            log.write(step=step, val_l1=validation_l1(model, val, dtype=dtype), seconds=round(clock.elapsed(), 1))
         if clock.checkpoint_due():
             checkpoint()
     checkpoint()
     if val is not None:
-        log.write(step=step, val_l1=validation_l1(model, val), seconds=round(clock.elapsed(), 1), event="end")
+        log.write(step=step, val_l1=validation_l1(model, val, dtype=dtype), seconds=round(clock.elapsed(), 1),
+                  event="end")
     out = run / "ckpt" / FINAL_WEIGHTS
     save_file({k: v.contiguous() for k, v in model.state_dict().items()}, str(out))
     return out

@@ -21,6 +21,8 @@ def _common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--threads", type=positive_int, default=None, help="torch CPU threads (default: all cores)")
     p.add_argument("--checkpoint-minutes", type=float, default=5.0, help="checkpoint cadence")
+    p.add_argument("--precision", choices=("auto", "fp32", "bf16"), default="auto",
+                   help="compute precision; auto: bf16 autocast where this CPU runs it faster than fp32, else fp32")
 
 
 def add_training_commands(subparsers) -> None:
@@ -69,7 +71,7 @@ def _train_tokenizer(args) -> int:
     config = TokenizerTrainConfig(data=args.data, run=args.run, preset=args.preset, steps=args.steps,
                                   minutes=args.minutes, clip_batch=args.clip_batch, image_batch=args.image_batch,
                                   crop=args.crop, lr=args.lr, checkpoint_minutes=args.checkpoint_minutes,
-                                  seed=args.seed)
+                                  seed=args.seed, precision=args.precision)
     print(train_tokenizer(config))
     return 0
 
@@ -90,7 +92,7 @@ def _train(args) -> int:
                             lr=args.lr, weight_decay=args.weight_decay, ema_decay=args.ema_decay,
                             warmup=args.warmup, val_every=args.val_every,
                             checkpoint_minutes=args.checkpoint_minutes, seed=args.seed, cache=args.cache,
-                            export=args.export)
+                            export=args.export, precision=args.precision)
     command = "python -m relight_core " + " ".join(shlex.quote(a) for a in sys.argv[1:])
     print(json.dumps(train_dit(config, command=command), indent=1))
     return 0

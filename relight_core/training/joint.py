@@ -13,6 +13,7 @@ import torch
 from relight_core.checkpoint import MODEL_PRESETS, ModelSpec, save_model
 from relight_core.data.dataset import RelightDataset
 from relight_core.dit import JointDiT
+from relight_core.precision import autocast, resolve_precision
 from relight_core.tokenizer import build_tokenizer
 from relight_core.training.latents import LatentSet, build_latent_set
 from relight_core.training.loop import (
@@ -56,6 +57,7 @@ class DiTTrainConfig:
     cache: Path = Path("cache/latents")
     export: Path | None = None           # write the EMA model folder here at the end
     recipe: Recipe = field(default_factory=Recipe)
+    precision: str = "auto"              # compute precision (fp32 weights, bf16 autocast where faster)
 
 
 def draw_batch(latents: LatentSet, config: DiTTrainConfig, generator: torch.Generator) -> tuple[dict, bool]:
@@ -67,11 +69,14 @@ def draw_batch(latents: LatentSet, config: DiTTrainConfig, generator: torch.Gene
     return latents.batch(indices, frames), is_image
 
 
-def train_step(dit: JointDiT, batch: dict, recipe: Recipe, generator: torch.Generator) -> tuple[torch.Tensor, dict]:
-    """Loss of one batch under bf16 autocast (backward not taken); also the drawn modes."""
+def train_step(dit: JointDiT, batch: dict, recipe: Recipe, generator: torch.Generator,
+               dtype: torch.dtype | None = None) -> tuple[torch.Tensor, dict]:
+    """Loss of one batch computed in `dtype` (default: this CPU's `auto` precision, precision.py; bf16
+    and fp16 as autocast over fp32 weights), backward not taken; also the drawn modes."""
+    dtype = dtype or resolve_precision("auto", "cpu")
     example = make_example(batch["input"], batch["relit"], batch["albedo"], batch["lighting"], recipe, generator,
                            batch["has_input"], batch["has_lighting"])
-    with torch.autocast("cpu", dtype=torch.bfloat16):
+    with autocast(dtype):
         loss, sigma = denoising_loss(dit, example, recipe, generator)
     counts = {f"n_{m}": int((example.modes == i).sum()) for i, m in enumerate(MODES)}
     counts["n_no_light"] = int(example.lighting_dropped.sum())
@@ -80,7 +85,7 @@ def train_step(dit: JointDiT, batch: dict, recipe: Recipe, generator: torch.Gene
 
 @torch.no_grad()
 def validation_loss(dit: JointDiT, latents: LatentSet, recipe: Recipe, seed: int, batch: int = 4,
-                    max_items: int = 32) -> float:
+                    max_items: int = 32, dtype: torch.dtype | None = None) -> float:
     """Mean loss over the first items' full clips in the default mode with lighting, fixed noise."""
     recipe = replace(recipe, p_albedo_only=0.0, p_both=0.0, p_drop_lighting=0.0, p_continue=0.0)
     generator = step_generator(seed, 0, stream=1)
@@ -90,7 +95,7 @@ def validation_loss(dit: JointDiT, latents: LatentSet, recipe: Recipe, seed: int
     total = 0.0
     for start in range(0, len(items), batch):
         chunk = items[start:start + batch]
-        loss, _ = train_step(dit, latents.batch(chunk), recipe, generator)
+        loss, _ = train_step(dit, latents.batch(chunk), recipe, generator, dtype)
         total += float(loss) * len(chunk)
     dit.train(was_training)
     return total / max(len(items), 1)
@@ -100,9 +105,9 @@ def export_model(out: Path, preset: str, dit: JointDiT, tokenizer, tokenizer_pre
                  clip_frames: int, notes: dict, dtype: torch.dtype = torch.bfloat16) -> Path:
     """Write a model folder: the preset's spec marked trained, at the training size and clip length.
 
-    The DiT is stored in `dtype` (bf16 halves the shipped file; inference runs under bf16 autocast
-    anyway); the tokenizer stays fp32 (it is small). `chunk_frames` is the training clip length with
-    a one-frame overlap, the continuation the recipe trains.
+    The DiT is stored in `dtype` (bf16 halves the shipped file; loading casts it to whatever precision
+    the machine computes in, see precision.py); the tokenizer stays fp32 (it is small). `chunk_frames`
+    is the training clip length with a one-frame overlap, the continuation the recipe trains.
     """
     spec: ModelSpec = replace(MODEL_PRESETS[preset], name=f"{preset}-trained",
                               tokenizer={"type": "causal-ae", "preset": tokenizer_preset},
@@ -114,13 +119,14 @@ def export_model(out: Path, preset: str, dit: JointDiT, tokenizer, tokenizer_pre
 def train_dit(config: DiTTrainConfig, progress: bool = True, command: str | None = None) -> dict:
     """Train (or resume) a DiT run; exports the EMA model when `config.export` is set. Returns a summary."""
     run = Path(config.run)
+    dtype = resolve_precision(config.precision, "cpu")
     tokenizer = build_tokenizer({"type": "causal-ae", "preset": config.tokenizer_preset,
                                  "weights": str(Path(config.tokenizer).resolve())})
     tokenizer.requires_grad_(False)
     train_data = RelightDataset(config.data, "train")
-    latents = build_latent_set(train_data, tokenizer, config.cache, progress)
+    latents = build_latent_set(train_data, tokenizer, config.cache, progress, dtype)
     has_test = (Path(config.data) / "test").is_dir()
-    val_latents = build_latent_set(RelightDataset(config.data, "test"), tokenizer, config.cache, progress) \
+    val_latents = build_latent_set(RelightDataset(config.data, "test"), tokenizer, config.cache, progress, dtype) \
         if has_test else None
 
     spec = MODEL_PRESETS[config.preset]
@@ -150,7 +156,7 @@ def train_dit(config: DiTTrainConfig, progress: bool = True, command: str | None
         save_checkpoint(run, step, {"dit": dit.state_dict(), "ema": ema.shadow}, optimizer)
 
     def validate(**extra) -> float:
-        value = validation_loss(ema.copy_to(ema_model), val_latents, config.recipe, config.seed)
+        value = validation_loss(ema.copy_to(ema_model), val_latents, config.recipe, config.seed, dtype=dtype)
         log.write(step=step, val_loss=value, seconds=round(clock.elapsed(), 1), **extra)
         last["val_loss"] = value
         return value
@@ -159,7 +165,7 @@ def train_dit(config: DiTTrainConfig, progress: bool = True, command: str | None
         generator = step_generator(config.seed, step)
         batch, is_image = draw_batch(latents, config, generator)
         lr = set_lr(optimizer, config.lr, step, config.warmup)
-        loss, counts = train_step(dit, batch, config.recipe, generator)
+        loss, counts = train_step(dit, batch, config.recipe, generator, dtype)
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         grad_norm = torch.nn.utils.clip_grad_norm_(dit.parameters(), config.grad_clip)

@@ -18,6 +18,8 @@ from safetensors.torch import load_file, save_file
 
 from relight_core.data.dataset import RelightDataset
 from relight_core.dit import LIGHTING_KEYS, pack_lighting
+from relight_core.precision import autocast as precision_autocast
+from relight_core.precision import resolve_precision
 
 IMAGE_FRAMES = 3   # frames per clip also encoded as single images (first, middle, last)
 
@@ -38,13 +40,17 @@ def image_frame_indices(num_frames: int) -> list[int]:
 
 
 @torch.no_grad()
-def encode_streams(tokenizer, streams: dict[str, torch.Tensor], autocast: bool = True) -> dict[str, torch.Tensor]:
-    """{name: [3,T,H,W] in [-1,1]} → {name/video: [16,t,h,w], name/image: [n,16,1,h,w]} (fp16)."""
+def encode_streams(tokenizer, streams: dict[str, torch.Tensor], autocast: bool = True,
+                   dtype: torch.dtype | None = None) -> dict[str, torch.Tensor]:
+    """{name: [3,T,H,W] in [-1,1]} → {name/video: [16,t,h,w], name/image: [n,16,1,h,w]} (fp16).
+
+    Encoded in `dtype` (default: this CPU's `auto` precision, precision.py); fp32 when `autocast` is off."""
+    dtype = (dtype or resolve_precision("auto", "cpu")) if autocast else torch.float32
     names = list(streams)
     videos = torch.stack([streams[n] for n in names])                               # (S, 3, T, H, W)
     frames = image_frame_indices(videos.shape[2])
     images = videos[:, :, frames].permute(0, 2, 1, 3, 4).flatten(0, 1)[:, :, None]  # (S·n, 3, 1, H, W)
-    with torch.autocast("cpu", dtype=torch.bfloat16, enabled=autocast):
+    with precision_autocast(dtype):
         z_video = tokenizer.encode(videos).float()                                   # (S, 16, t, h, w)
         z_image = tokenizer.encode(images).float()                                   # (S·n, 16, 1, h, w)
     z_image = z_image.unflatten(0, (len(names), len(frames)))                        # (S, n, 16, 1, h, w)
@@ -113,8 +119,9 @@ class LatentSet:
         return self.scenes[0]["albedo/image"].shape[0]
 
 
-def build_latent_set(dataset: RelightDataset, tokenizer, cache_dir: Path, progress: bool = True) -> LatentSet:
-    """Encode (or load from `cache_dir`) every scene of `dataset` and index its items."""
+def build_latent_set(dataset: RelightDataset, tokenizer, cache_dir: Path, progress: bool = True,
+                     dtype: torch.dtype | None = None) -> LatentSet:
+    """Encode (or load from `cache_dir`) every scene of `dataset` and index its items (in `dtype`)."""
     cache = Path(cache_dir) / tokenizer_fingerprint(tokenizer) / dataset.split_dir.name
     cache.mkdir(parents=True, exist_ok=True)
     by_scene: dict[Path, list[int]] = {}
@@ -142,7 +149,7 @@ def build_latent_set(dataset: RelightDataset, tokenizer, cache_dir: Path, progre
                     for key in LIGHTING_KEYS:
                         streams[f"env{item.target_light}_{key.removeprefix('env_')}"] = sample[key]
             else:
-                scene = encode_streams(tokenizer, streams)
+                scene = encode_streams(tokenizer, streams, dtype=dtype)
                 lights = sorted(has_lighting)
                 save_file({**scene, "_lights": torch.tensor(lights),
                            "_has_lighting": torch.tensor([has_lighting[k] for k in lights])}, str(path))

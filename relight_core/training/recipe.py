@@ -57,12 +57,12 @@ class Example:
 def sample_modes(batch: int, recipe: Recipe, generator: torch.Generator,
                  has_input: torch.Tensor | None = None) -> torch.Tensor:
     """[B] mode indices into MODES; samples with no input clip are always albedo_only."""
-    u = torch.rand(batch, generator=generator)
-    modes = torch.zeros(batch, dtype=torch.long)
+    u = torch.rand(batch, generator=generator, device=generator.device)
+    modes = torch.zeros(batch, dtype=torch.long, device=generator.device)
     modes[u < recipe.p_albedo_only + recipe.p_both] = MODES.index("both")
     modes[u < recipe.p_albedo_only] = MODES.index("albedo_only")
     if has_input is not None:
-        modes[~has_input.bool()] = MODES.index("albedo_only")
+        modes[~has_input.bool().to(modes.device)] = MODES.index("albedo_only")
     return modes
 
 
@@ -72,20 +72,22 @@ def make_example(input_latent: torch.Tensor, relit: torch.Tensor, albedo: torch.
     """Draw modes and dropouts for a batch of latents ([B,16,t,h,w] each, lighting [B,51,t,h,w])."""
     b, _, t = relit.shape[:3]
     modes = sample_modes(b, recipe, generator, has_input)
-    dropped = torch.rand(b, generator=generator) < recipe.p_drop_lighting
+    device = generator.device                  # random draws on the generator's device (CPU or GPU)
+    dropped = torch.rand(b, generator=generator, device=device) < recipe.p_drop_lighting
     if has_lighting is not None:
-        dropped |= ~has_lighting.bool()
-    continued = (torch.rand(b, generator=generator) < recipe.p_continue) & (t > 1)
+        dropped |= ~has_lighting.bool().to(device)
+    continued = (torch.rand(b, generator=generator, device=device) < recipe.p_continue) & (t > 1)
 
+    modes, dropped, continued = modes.to(relit.device), dropped.to(relit.device), continued.to(relit.device)
     keep_input = (modes != MODES.index("albedo_only")).to(relit.dtype).view(b, 1, 1, 1, 1)
     x0 = torch.cat([input_latent * keep_input, relit, albedo], dim=2)                # (B, 16, 3t, h, w)
-    mask = torch.zeros(b, 1, NUM_CLIPS * t, 1, 1, dtype=relit.dtype)                  # (B, 1, 3t, 1, 1)
+    mask = torch.zeros(b, 1, NUM_CLIPS * t, 1, 1, dtype=relit.dtype, device=relit.device)  # (B, 1, 3t, 1, 1)
     mask[:, :, :t] = 1.0                               # the input clip is always a condition (zeroed or not)
     mask[modes != MODES.index("default"), :, 2 * t:] = 1.0                            # albedo given
     mask[continued, :, t] = 1.0                        # first relit latent frame given (chunk continuation)
     mask[continued, :, 2 * t] = 1.0
     lighting = lighting * (~dropped).to(lighting.dtype).view(b, 1, 1, 1, 1)           # (B, 51, t, h, w)
-    return Example(x0, mask.to(relit.device), lighting, modes, dropped)
+    return Example(x0, mask, lighting, modes, dropped)
 
 
 def network(dit: JointDiT, x_in: torch.Tensor, c_noise: torch.Tensor, lighting: torch.Tensor,
@@ -100,9 +102,10 @@ def denoising_loss(dit: JointDiT, example: Example, recipe: Recipe, generator: t
                    ) -> tuple[torch.Tensor, torch.Tensor]:
     """EDM loss of one batch: σ ~ log-normal, x = x0 + σ·n, conditions pinned; returns (loss, σ)."""
     x0 = example.x0
-    sigma = sample_training_sigma(x0.shape[0], recipe.p_mean, recipe.p_std, generator)       # (B,)
-    noise = torch.randn(x0.shape, generator=generator)                                        # (B, 16, 3t, h, w)
-    seed = int(torch.randint(0, 2 ** 31 - 1, (1,), generator=generator))
+    device = generator.device
+    sigma = sample_training_sigma(x0.shape[0], recipe.p_mean, recipe.p_std, generator).to(x0.device)  # (B,)
+    noise = torch.randn(x0.shape, generator=generator, device=device).to(x0.device)          # (B, 16, 3t, h, w)
+    seed = int(torch.randint(0, 2 ** 31 - 1, (1,), generator=generator, device=device))
     denoiser = ConditionedDenoiser(EDMPrecond(partial(network, dit)), x0, example.condition_mask,
                                    augment_sigma=recipe.augment_sigma, seed=seed)
     denoised = denoiser(x0 + sigma.view(-1, 1, 1, 1, 1) * noise, sigma, lighting=example.lighting)

@@ -1,0 +1,318 @@
+"""Train the default model — a pixel-tokenizer joint DiT — on an image pack, on a GPU or the CPU.
+
+The default model's tokenizer is the lossless `PixelTokenizer` (8×8 RGB patches, 192 channels),
+so there is nothing to encode ahead of time: batches are cut from a pack (`training.pack`) held in
+(GPU) memory, flipped at random, and turned into latents on the fly. The recipe is the project's
+UniRelight recipe (`training.recipe`: conditioning mix, lighting dropout, EDM loss, condition clips
+fed as at inference), with every random draw on the training device.
+
+    python -m relight_core.training.fast --pack cache/train.npz --test-pack cache/test.npz \
+        --minutes 7 --device cuda --out runs/default-pixel
+
+Writes `<out>/model/` (config.json + dit.safetensors, the EMA in bf16; also as ≤15 MB shards
+`<out>/dit-shard-*.safetensors` + `<out>/config.json` that `merge_shards` joins, rewritten every
+`--export-every-minutes`), `<out>/log.jsonl` and, at the end, sampled
+PSNR on train and test items (`<out>/samples.json`). `--init DIR` starts from a model folder's
+DiT (to continue from the shipped weights).
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import datetime
+import json
+import math
+import time
+from dataclasses import asdict, dataclass, field, replace
+from functools import partial
+from pathlib import Path
+
+import torch
+from safetensors.torch import load_file, save_file
+
+from relight_core import lighting
+from relight_core.checkpoint import CONFIG_FILE, DIT_FILE, ModelSpec
+from relight_core.diffusion import ConditionedDenoiser, EDMPrecond, get_sigmas_karras, sample_res2ab
+from relight_core.dit import DiTConfig, JointDiT, pack_lighting
+from relight_core.tokenizer import PixelTokenizer
+from relight_core.training.loop import EMA, make_optimizer
+from relight_core.training.pack import load_pack
+from relight_core.training.recipe import Recipe, denoising_loss, make_example, network
+
+SHARD_BYTES = 15_000_000
+
+
+@dataclass(frozen=True)
+class FastConfig:
+    pack: Path
+    out: Path
+    test_pack: Path | None = None
+    minutes: float = 7.0
+    device: str = "auto"                 # cuda when available, else cpu
+    batch: int = 128
+    lr: float = 4e-4
+    min_lr_fraction: float = 0.1         # cosine decay over the time budget down to this fraction
+    warmup: int = 200
+    weight_decay: float = 0.01
+    grad_clip: float = 1.0
+    ema_decay: float = 0.999
+    width: int = 384
+    depth: int = 8
+    num_heads: int = 6
+    patch: int = 8
+    seed: int = 0
+    log_every: int = 50
+    eval_items: int = 32
+    eval_steps: int = 20
+    init: Path | None = None
+    model_dir: Path | None = None        # the model folder (default <out>/model)
+    export_every_minutes: float = 2.0    # shards + config.json of the EMA so far, in <out>
+    compile: bool = False                # torch.compile the DiT for training (falls back to eager)
+    recipe: Recipe = field(default_factory=Recipe)
+
+
+def dit_config(config: FastConfig) -> DiTConfig:
+    return DiTConfig(width=config.width, depth=config.depth, num_heads=config.num_heads,
+                     adaln_lora_dim=64, patch_spatial=1, out_channels=3 * config.patch ** 2)
+
+
+def _video(x: torch.Tensor) -> torch.Tensor:
+    """[B,3,H,W] → [B,3,1,H,W]."""
+    return x[:, :, None]
+
+
+def make_batch(pack: dict, tokenizer: PixelTokenizer, indices: torch.Tensor, target: torch.Tensor,
+               flip: torch.Tensor) -> dict[str, torch.Tensor]:
+    """Latents of items: input (the other light), relit (light `target`), albedo, lighting [B,579,1,h,w].
+
+    `flip` mirrors image and probe left↔right (u → 1−u in the camera panorama: the mirrored scene
+    under the mirrored light), env_dir staying what it is for every pixel.
+    """
+    arange = torch.arange(len(indices), device=indices.device)
+    rgb = pack["rgb"][indices]                                                  # (B, 2, 3, H, W) uint8
+    relit = rgb[arange, target].float() / 127.5 - 1
+    source = rgb[arange, 1 - target].float() / 127.5 - 1
+    albedo = pack["albedo"][indices].float() / 127.5 - 1
+    env = pack["env"][indices, target]                                           # (B, s, s, 3)
+    f = flip.view(-1, 1, 1, 1)
+    relit, source, albedo = (torch.where(f, x.flip(-1), x) for x in (relit, source, albedo))
+    env = torch.where(f, env.flip(2), env)
+    height, width = relit.shape[-2:]
+    encoded = lighting.encode_lighting(lighting.upsample_panorama(env, height, width))
+    light = [tokenizer.encode(_video(encoded[k].to(relit.device).permute(0, 3, 1, 2)))
+             for k in ("env_ldr", "env_log", "env_dir")]
+    return {"input": tokenizer.encode(_video(source)), "relit": tokenizer.encode(_video(relit)),
+            "albedo": tokenizer.encode(_video(albedo)), "lighting": pack_lighting(*light)}
+
+
+@torch.no_grad()
+def sample_relight(dit: JointDiT, batch: dict, steps: int, seed: int = 0, autocast: bool = True) -> torch.Tensor:
+    """Default-mode sampling (input → relit + albedo) as `Relighter` runs it; x0 [B,C,3,h,w]."""
+    inp = batch["input"]
+    b, _, t = inp.shape[:3]
+    condition = torch.cat([inp, torch.zeros_like(inp), torch.zeros_like(inp)], dim=2)
+    mask = torch.zeros(b, 1, 3 * t, 1, 1, device=inp.device)
+    mask[:, :, :t] = 1.0
+    denoiser = ConditionedDenoiser(EDMPrecond(partial(network, dit)), condition, mask, seed=seed)
+    generator = torch.Generator(device=inp.device).manual_seed(seed)
+    noise = torch.randn(condition.shape, generator=generator, device=inp.device)
+    sigmas = get_sigmas_karras(steps).to(inp.device)
+    with torch.autocast(inp.device.type, dtype=torch.bfloat16, enabled=autocast):
+        return sample_res2ab(lambda x, s, **kw: denoiser(x, s, lighting=batch["lighting"]),
+                             noise * sigmas[0], sigmas).float()
+
+
+def psnr(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """Per-item PSNR of [-1,1] images [B,...] (peak 2)."""
+    mse = ((a - b) ** 2).flatten(1).mean(1).clamp_min(1e-10)
+    return 10 * torch.log10(4 / mse)
+
+
+@torch.no_grad()
+def sampled_quality(dit: JointDiT, pack: dict, tokenizer: PixelTokenizer, items: int, steps: int,
+                    autocast: bool) -> dict[str, float]:
+    """Mean PSNR of sampled relit/albedo on the first items (light 1 → 0), the input-copy floor and the
+    probe-following margin (PSNR to the target minus PSNR to the same scene under the other probe)."""
+    n = min(items, len(pack["rgb"]))
+    device = pack["rgb"].device
+    idx = torch.arange(n, device=device)
+    out = {"relit": [], "albedo": [], "floor": [], "margin": []}
+    for start in range(0, n, 16):
+        sub = idx[start:start + 16]
+        target = torch.zeros_like(sub)
+        batch = make_batch(pack, tokenizer, sub, target, torch.zeros_like(sub, dtype=torch.bool))
+        x0 = sample_relight(dit, batch, steps, autocast=autocast)
+        t = batch["input"].shape[2]
+        relit = tokenizer.decode(x0[:, :, t:2 * t])
+        albedo = tokenizer.decode(x0[:, :, 2 * t:])
+        target_img, input_img = tokenizer.decode(batch["relit"]), tokenizer.decode(batch["input"])
+        out["relit"].append(psnr(relit, target_img))
+        out["albedo"].append(psnr(albedo, tokenizer.decode(batch["albedo"])))
+        out["floor"].append(psnr(input_img, target_img))
+        out["margin"].append(psnr(relit, target_img) - psnr(relit, input_img))
+    return {k: round(float(torch.cat(v).mean()), 3) for k, v in out.items()}
+
+
+def export(out: Path, dit: JointDiT, config: FastConfig, size: int, lighting_size: int, notes: dict,
+           model_dir: Path | None = None) -> Path:
+    """Transport shards + config.json in `out`; with `model_dir`, also the model folder there
+    (EMA DiT in bf16, pixel tokenizer spec)."""
+    spec = ModelSpec(name="default-pixel", dit=dit_config(config), tokenizer={"type": "pixel", "patch": config.patch},
+                     chunk_frames=1, overlap_frames=0, size=size, steps=20, sampler="res2ab",
+                     trained=True, lighting_size=lighting_size, notes=notes)
+    state = {k: v.detach().to(torch.bfloat16).cpu().contiguous() for k, v in dit.state_dict().items()}
+    config_text = json.dumps(spec.to_json(), indent=2)
+    (Path(out) / CONFIG_FILE).write_text(config_text)
+    if model_dir is not None:
+        Path(model_dir).mkdir(parents=True, exist_ok=True)
+        save_file(state, Path(model_dir) / DIT_FILE)
+        (Path(model_dir) / CONFIG_FILE).write_text(config_text)
+    shards: list[dict] = [{}]
+    used = 0
+    for name, value in state.items():
+        nbytes = value.numel() * value.element_size()
+        if shards[-1] and used + nbytes > SHARD_BYTES:
+            shards.append({})
+            used = 0
+        shards[-1][name] = value
+        used += nbytes
+    for i, shard in enumerate(shards):
+        save_file(shard, Path(out) / f"dit-shard-{i}.safetensors")
+    return Path(model_dir or out)
+
+
+def merge_shards(shard_dir: Path, config_json: Path, folder: Path) -> Path:
+    """Join `dit-shard-*.safetensors` + a config.json into a model folder."""
+    state = {}
+    for path in sorted(Path(shard_dir).glob("dit-shard-*.safetensors")):
+        state.update(load_file(str(path)))
+    folder.mkdir(parents=True, exist_ok=True)
+    save_file(state, folder / DIT_FILE)
+    (folder / CONFIG_FILE).write_text(Path(config_json).read_text())
+    return folder
+
+
+def train(config: FastConfig) -> dict:
+    device = torch.device(("cuda" if torch.cuda.is_available() else "cpu") if config.device == "auto" else config.device)
+    started = time.time()
+    torch.manual_seed(config.seed)
+    if device.type == "cuda":
+        torch.backends.cuda.matmul.allow_tf32 = True
+        torch.backends.cudnn.allow_tf32 = True
+    pack = load_pack(config.pack, device)
+    test = load_pack(config.test_pack, device) if config.test_pack else None
+    tokenizer = PixelTokenizer(config.patch)
+    size = int(pack["rgb"].shape[-1])
+    lighting_size = int(pack["lighting_size"])
+    dit = JointDiT(dit_config(config)).to(device)
+    if config.init is not None:
+        dit.load_state_dict({k: v.float() for k, v in load_file(str(Path(config.init) / DIT_FILE)).items()})
+    ema = EMA(dit, config.ema_decay)
+    ema_model = copy.deepcopy(dit).requires_grad_(False)
+    optimizer = make_optimizer(dit, config.lr, (0.9, 0.99), config.weight_decay)
+    generator = torch.Generator(device=device).manual_seed(config.seed)
+    autocast = device.type == "cuda"
+    net = torch.compile(dit) if config.compile else dit
+    out = Path(config.out)
+    out.mkdir(parents=True, exist_ok=True)
+    log = (out / "log.jsonl").open("a")
+
+    def write(**record):
+        log.write(json.dumps(record) + "\n")
+        log.flush()
+        print(json.dumps(record), flush=True)
+
+    params = sum(p.numel() for p in dit.parameters())
+    write(event="start", items=len(pack["rgb"]), test_items=len(test["rgb"]) if test else 0, params=params,
+          config={k: str(v) for k, v in asdict(config).items()}, load_s=round(time.time() - started, 1),
+          device=str(torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu"))
+    budget = config.minutes * 60
+    train_started = time.time()
+    step, losses = 0, []
+    n = len(pack["rgb"])
+    last_export = time.time()
+    notes = {"recipe": asdict(config.recipe), "batch": config.batch, "lr": config.lr}
+    while True:
+        elapsed = time.time() - train_started
+        if elapsed > budget:
+            break
+        progress = elapsed / budget
+        lr = config.lr * min(1.0, (step + 1) / config.warmup)
+        lr *= config.min_lr_fraction + (1 - config.min_lr_fraction) * 0.5 * (1 + math.cos(math.pi * progress))
+        for group in optimizer.param_groups:
+            group["lr"] = lr
+        indices = torch.randint(0, n, (config.batch,), generator=generator, device=device)
+        target = torch.randint(0, 2, (config.batch,), generator=generator, device=device)
+        flip = torch.rand(config.batch, generator=generator, device=device) < 0.5
+        batch = make_batch(pack, tokenizer, indices, target, flip)
+        example = make_example(batch["input"], batch["relit"], batch["albedo"], batch["lighting"],
+                               config.recipe, generator)
+        try:
+            with torch.autocast(device.type, dtype=torch.bfloat16, enabled=autocast):
+                loss, _ = denoising_loss(net, example, config.recipe, generator)
+            optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+        except Exception as exc:  # a compiler failure costs one step, not the run
+            if net is dit:
+                raise
+            write(event="compile-failed", step=step, error=repr(exc)[:500])
+            net = dit
+            continue
+        grad_norm = torch.nn.utils.clip_grad_norm_(dit.parameters(), config.grad_clip)
+        optimizer.step()
+        ema.update(dit, step)
+        step += 1
+        losses.append(loss.detach())
+        if step % config.log_every == 0:
+            mean = float(torch.stack(losses).mean())
+            losses = []
+            if not math.isfinite(mean):
+                raise FloatingPointError(f"non-finite loss at step {step}; lower the learning rate")
+            write(step=step, loss=round(mean, 5), lr=lr, grad_norm=round(float(grad_norm), 4),
+                  seconds=round(time.time() - train_started, 1))
+        if time.time() - last_export > config.export_every_minutes * 60:
+            export(out, ema.copy_to(ema_model), config, size, lighting_size, {**notes, "steps": step})
+            last_export = time.time()
+    train_seconds = time.time() - train_started
+    ema.copy_to(ema_model).eval()
+    quality = {"train": sampled_quality(ema_model, pack, tokenizer, config.eval_items, config.eval_steps, autocast)}
+    if test is not None:
+        quality["test"] = sampled_quality(ema_model, test, tokenizer, config.eval_items, config.eval_steps, autocast)
+    summary = {"steps": step, "train_items": n, "train_seconds": round(train_seconds, 1),
+               "samples_seen": step * config.batch, "device": str(device), "params": params,
+               "sampled_psnr": quality,
+               "date": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")}
+    write(event="end", **summary)
+    (out / "samples.json").write_text(json.dumps(quality, indent=1))
+    export(out, ema_model, config, size, lighting_size, {**notes, **summary},
+           config.model_dir or out / "model")
+    return summary
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--pack", type=Path, required=True)
+    parser.add_argument("--test-pack", type=Path)
+    parser.add_argument("--out", type=Path, required=True)
+    parser.add_argument("--init", type=Path)
+    parser.add_argument("--model-dir", type=Path)
+    parser.add_argument("--compile", action="store_true")
+    defaults = FastConfig(pack=Path(), out=Path())
+    for name in ("minutes", "device", "batch", "lr", "warmup", "ema_decay", "width", "depth", "num_heads",
+                 "seed", "log_every", "eval_items", "eval_steps", "export_every_minutes"):
+        value = getattr(defaults, name)
+        parser.add_argument(f"--{name.replace('_', '-')}", type=type(value), default=value)
+    parser.add_argument("--p-mean", type=float, default=defaults.recipe.p_mean)
+    parser.add_argument("--p-std", type=float, default=defaults.recipe.p_std)
+    parser.add_argument("--albedo-weight", type=float, default=defaults.recipe.clip_weights[2],
+                        help="loss weight of the albedo clip (the paper's 0.1)")
+    args = vars(parser.parse_args(argv))
+    recipe = replace(defaults.recipe, p_mean=args.pop("p_mean"), p_std=args.pop("p_std"),
+                     clip_weights=(0.0, 1.0, args.pop("albedo_weight")))
+    summary = train(FastConfig(**args, recipe=recipe))
+    print(json.dumps(summary, indent=1))
+
+
+if __name__ == "__main__":
+    main()

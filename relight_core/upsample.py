@@ -1,0 +1,81 @@
+"""Full-resolution output: carry what the model predicted at its size onto the input's resolution.
+
+The model works at its training size (e.g. 128 px); photos and videos come at 720p and more. What
+relighting changes is mostly low-frequency (shading, shadows, colour casts), while the input already
+holds the high-frequency detail. So the prediction is transferred as a *ratio*:
+
+    ratio  = small_output / max(small_input, ratio_eps)     at the model's size, per channel
+    ratio  → resized to the full size, then edge-aware smoothed by a guided filter
+             (He et al. 2013, `cv2.ximgproc.guidedFilter`) guided by the full-resolution input,
+             so its edges snap to the input's edges instead of the model grid's blur
+    result = clip(full_input × ratio, 0, 1)
+
+The guided filter is linear in the filtered signal, so it is applied to `ratio − c` (c the
+per-channel median ratio) and c is added back: a constant ratio comes through bit-exact.
+"""
+
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("OPENCV_IO_ENABLE_OPENEXR", "1")  # must precede the cv2 import
+
+import cv2  # noqa: E402
+import numpy as np  # noqa: E402
+
+from relight_core.errors import InputError  # noqa: E402
+
+RATIO_EPS = 1.0 / 255.0     # darkest input value a ratio is taken against (one 8-bit step)
+GUIDE_EPS = 1e-3            # guided-filter regularisation, in squared [0, 1] guide units
+
+
+def guided_ratio_upsample(full_input: np.ndarray, small_input: np.ndarray, small_output: np.ndarray,
+                          radius: int | None = None, eps: float = GUIDE_EPS,
+                          ratio_eps: float = RATIO_EPS) -> np.ndarray:
+    """The model's output at the full input's resolution, by guided ratio transfer (module docstring).
+
+    `full_input` [T,H,W,3] (or [H,W,3]) in [0,1] is what the user gave; `small_input` [T,h,w,3] the
+    frames the model saw (a resize of it) and `small_output` [T,h,w,3] what it returned for them.
+    Returns float32 [T,H,W,3] (or [H,W,3]) in [0,1]. When the sizes already agree the output is
+    returned as it is. `radius` defaults to twice the upsampling factor (at least 2 pixels).
+    """
+    full = np.asarray(full_input, dtype=np.float32)
+    small_in = np.asarray(small_input, dtype=np.float32)
+    small_out = np.asarray(small_output, dtype=np.float32)
+    single = full.ndim == 3
+    if single:
+        full, small_in, small_out = full[None], small_in[None], small_out[None]
+    if full.ndim != 4 or full.shape[-1] != 3 or small_in.shape != small_out.shape or \
+            small_in.ndim != 4 or small_in.shape[0] != full.shape[0] or small_in.shape[-1] != 3:
+        raise InputError(f"Full-resolution output needs frames [T,H,W,3] with matching frame counts; got "
+                         f"{list(np.shape(full_input))}, {list(np.shape(small_input))} and "
+                         f"{list(np.shape(small_output))}.")
+    _, H, W, _ = full.shape
+    _, h, w, _ = small_in.shape
+    if (H, W) == (h, w):
+        out = np.clip(small_out, 0.0, 1.0)
+        return out[0] if single else out
+    if radius is None:
+        radius = max(2, round(2 * max(H / h, W / w)))
+    ratios = small_out / np.maximum(small_in, ratio_eps)                              # [T, h, w, 3]
+    out = np.empty_like(full)
+    for t in range(full.shape[0]):
+        ratio = cv2.resize(ratios[t], (W, H), interpolation=cv2.INTER_LINEAR)          # [H, W, 3]
+        centre = np.median(ratios[t].reshape(-1, 3), axis=0).astype(np.float32)
+        guide = np.ascontiguousarray(full[t])
+        detail = cv2.ximgproc.guidedFilter(guide, np.ascontiguousarray(ratio - centre), int(radius), float(eps))
+        out[t] = np.clip(full[t] * (detail + centre), 0.0, 1.0)
+    return out[0] if single else out
+
+
+def plain_upsample(small_output: np.ndarray, height: int, width: int) -> np.ndarray:
+    """The baseline: the model's output [T,h,w,3] resized to [T,height,width,3] (bilinear, antialiased)."""
+    import torch
+    import torch.nn.functional as F
+
+    frames = np.asarray(small_output, dtype=np.float32)
+    if frames.shape[1:3] == (height, width):
+        return frames
+    x = torch.from_numpy(np.ascontiguousarray(frames)).permute(0, 3, 1, 2)
+    x = F.interpolate(x, size=(height, width), mode="bilinear", antialias=True, align_corners=False)
+    return x.clamp(0, 1).permute(0, 2, 3, 1).contiguous().numpy()

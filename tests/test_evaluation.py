@@ -1,0 +1,329 @@
+"""Evaluation: the metrics against hand-computed values, the lighting it feeds, the margin, a whole run."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from relight_core import lighting
+from relight_core.checkpoint import MODEL_PRESETS
+from relight_core.cli import main
+from relight_core.data.dataset import RelightDataset, read_stream, write_frame, write_manifest, write_meta
+from relight_core.dit import JointDiT, channel_layout
+from relight_core.errors import InputError
+from relight_core.evaluation import protocol_metrics, psnr, scale_fit, ssim
+from relight_core.evaluation.harness import RunOptions, load_items, measure_item, probe_margin, relight
+from relight_core.pipeline import Relighter, RelightRequest
+from relight_core.tokenizer import build_tokenizer
+
+SIZE = 32
+
+
+# ---------------------------------------------------------------------------------------------
+# Metrics
+# ---------------------------------------------------------------------------------------------
+
+def test_psnr_is_computed_on_the_mask_only():
+    target = np.full((16, 16, 3), 0.6)
+    pred = np.full((16, 16, 3), 0.5)                 # off by 0.1 everywhere: MSE 0.01 → 20 dB
+    pred[:, 8:] = 0.0                                # far off on the right half...
+    mask = np.zeros((16, 16))
+    mask[:, :8] = 1.0                                # ...which the mask leaves out
+    assert psnr(pred, target, mask) == pytest.approx(20.0)
+    unmasked_mse = (0.01 + 0.36) / 2
+    assert psnr(pred, target) == pytest.approx(-10 * math.log10(unmasked_mse))
+    assert psnr(target, target) == 100.0             # identical: the cap
+
+
+def test_psnr_averages_frames_and_an_empty_mask_counts_every_pixel():
+    target = np.zeros((2, 8, 8, 3))
+    pred = np.stack([np.full((8, 8, 3), 0.1), np.full((8, 8, 3), 0.01)])   # 20 dB and 40 dB
+    mask = np.zeros((2, 8, 8))
+    assert psnr(pred, target, mask) == pytest.approx(30.0)
+
+
+def test_scale_fit_is_the_per_channel_least_squares_factor_on_the_mask():
+    # Channel 0, masked pixels p = (0.1, 0.2), t = (0.2, 0.3): s = (0.02 + 0.06) / (0.01 + 0.04) = 1.6.
+    pred = np.zeros((1, 1, 3, 3))
+    target = np.zeros((1, 1, 3, 3))
+    pred[0, 0, :, 0], target[0, 0, :, 0] = (0.1, 0.2, 0.9), (0.2, 0.3, 0.0)   # the third pixel is masked out
+    pred[0, 0, :, 1], target[0, 0, :, 1] = (0.4, 0.2, 0.5), (0.2, 0.1, 0.5)   # exactly half: s = 0.5
+    pred[0, 0, :, 2], target[0, 0, :, 2] = (0.3, 0.3, 0.3), (0.3, 0.3, 0.3)   # already right: s = 1
+    mask = np.array([[[1.0, 1.0, 0.0]]])
+    fitted, scales = scale_fit(pred, target, mask)
+    np.testing.assert_allclose(scales, [1.6, 0.5, 1.0])
+    np.testing.assert_allclose(fitted[0, 0, :2, 0], [0.16, 0.32])
+    # Errors on the mask after the fit: channel 0 (0.04, 0.02), channels 1 and 2 exact.
+    expected_mse = (0.04 ** 2 + 0.02 ** 2) / 6
+    assert psnr(fitted, target, mask) == pytest.approx(-10 * math.log10(expected_mse))
+    assert protocol_metrics(pred, target, mask)["psnr"] == pytest.approx(-10 * math.log10(expected_mse))
+
+
+def test_scale_fit_removes_a_colour_cast_and_clips():
+    rng = np.random.default_rng(0)
+    target = rng.uniform(0.1, 0.5, (2, 16, 16, 3))
+    cast = target / np.array([2.0, 0.5, 1.25])         # a tinted, mis-exposed prediction
+    assert protocol_metrics(cast, target)["psnr"] == 100.0
+    assert psnr(cast, target) < 20
+    fitted, _ = scale_fit(np.full((4, 4, 3), 0.5), np.full((4, 4, 3), 3.0))
+    assert fitted.max() == 1.0                          # a scaled prediction stays an image
+
+
+def test_ssim_of_constant_images_and_of_identical_ones():
+    a, b = 0.2, 0.6
+    c1, c2 = 0.01 ** 2, 0.03 ** 2
+    expected = (2 * a * b + c1) / (a * a + b * b + c1)  # no variance: the structure term is c2/c2
+    assert ssim(np.full((16, 16, 3), a), np.full((16, 16, 3), b)) == pytest.approx(expected)
+    image = np.random.default_rng(1).random((20, 24, 3))
+    assert ssim(image, image) == pytest.approx(1.0)
+
+
+def test_ssim_matches_a_window_by_window_computation():
+    rng = np.random.default_rng(2)
+    a = rng.random((13, 14, 3))
+    b = np.clip(a + 0.2 * rng.standard_normal(a.shape), 0, 1)
+    g = np.exp(-((np.arange(11) - 5) ** 2) / (2 * 1.5 ** 2))
+    window = np.outer(g, g) / np.outer(g, g).sum()
+    values = []
+    for c in range(3):
+        for i in range(13 - 10):
+            for j in range(14 - 10):
+                x, y = a[i:i + 11, j:j + 11, c], b[i:i + 11, j:j + 11, c]
+                mx, my = (window * x).sum(), (window * y).sum()
+                vx, vy = (window * x * x).sum() - mx ** 2, (window * y * y).sum() - my ** 2
+                cov = (window * x * y).sum() - mx * my
+                values.append((2 * mx * my + 1e-4) * (2 * cov + 9e-4) / ((mx ** 2 + my ** 2 + 1e-4) * (vx + vy + 9e-4)))
+    assert ssim(b, a) == pytest.approx(np.mean(values), abs=1e-9)
+    assert ssim(b, a) < 0.9
+
+
+def test_ssim_ignores_what_the_mask_excludes():
+    rng = np.random.default_rng(3)
+    target = rng.random((32, 32, 3))
+    pred = target.copy()
+    pred[:, :16] = rng.random((32, 16, 3))              # wrong on the left half only
+    mask = np.zeros((32, 32))
+    mask[:, 16:] = 1.0
+    assert ssim(pred, target, mask) == pytest.approx(1.0)
+    assert ssim(pred, target) < 0.75
+
+
+# ---------------------------------------------------------------------------------------------
+# A tiny two-probe dataset written with the data engine's writers
+# ---------------------------------------------------------------------------------------------
+
+def _sun_probe(yaw: float) -> torch.Tensor:
+    env = torch.full((16, 32, 3), 0.2)
+    env[4, int(32 * yaw / 360) % 32] = torch.tensor([400.0, 380.0, 350.0])
+    return env
+
+
+def write_dataset(root, split: str, scenes: int = 2, frames: int = 1, size: int = SIZE, seed: int = 0):
+    """Scenes of a textured patch lit from two sides, with camera-frame sun probes, in the dataset format."""
+    rng = np.random.default_rng([seed, len(split)])
+    yy, xx = np.mgrid[0:size, 0:size] / size
+    for s in range(scenes):
+        sample = root / split / f"scene_{s:06d}"
+        tint = rng.uniform(0.5, 1.0, 3)
+        albedo = np.stack([0.3 + 0.5 * ((np.floor(xx * 6) + np.floor(yy * 6)) % 2), 0.3 + 0.4 * xx,
+                           0.4 + 0.3 * yy], -1) * tint
+        mask = (yy > 0.25).astype(np.float32)
+        for light, yaw in enumerate(rng.uniform(0, 360, 2)):
+            panorama = lighting.probe_in_camera(_sun_probe(yaw), size, size, rotation=30.0 * s).numpy()
+            for t in range(frames):
+                shade = 0.25 + 0.75 * np.clip(np.cos(2 * np.pi * (xx - yaw / 360 - 0.05 * t)), 0, 1)
+                write_frame(sample, f"rgb{light}", t, np.clip(albedo * shade[..., None], 0, 1))
+                write_frame(sample, f"env{light}", t, panorama)
+        for t in range(frames):
+            write_frame(sample, "albedo", t, albedo)
+            write_frame(sample, "mask", t, mask)
+        write_meta(sample, {"kind": "synthetic", "frames": frames, "height": size, "width": size, "lights": 2})
+    write_manifest(root / split)
+    return root
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory):
+    root = tmp_path_factory.mktemp("data")
+    write_dataset(root, "train", scenes=2)
+    write_dataset(root, "test", scenes=2)
+    return root
+
+
+def _awake(relighter: Relighter) -> Relighter:
+    """Random values for the zero-initialised (adaLN-zero) weights: an untrained DiT whose output
+    depends on its inputs, the lighting included."""
+    generator = torch.Generator().manual_seed(0)
+    with torch.no_grad():
+        for parameter in relighter.dit.parameters():
+            if not parameter.any():
+                parameter.copy_(0.05 * torch.randn(parameter.shape, generator=generator))
+    return relighter
+
+
+def _tiny(blind: bool = False) -> Relighter:
+    """The tiny preset, awake; `blind` zeroes the patch-embedding weights of every lighting channel."""
+    spec = MODEL_PRESETS["tiny"]
+    torch.manual_seed(0)
+    relighter = _awake(Relighter(spec, JointDiT(spec.dit), build_tokenizer(spec.tokenizer), "cpu", precision="fp32"))
+    if blind:
+        layout = channel_layout(spec.dit.out_channels)
+        lit = slice(layout["env_ldr"].start, layout["env_dir_mask"].stop)
+        with torch.no_grad():
+            weight = relighter.dit.patch_embed.weight                          # (D, C·pt·p·p), (c, pt, p, p) order
+            weight.view(weight.shape[0], -1, weight.shape[1] // layout["clip_type"].stop)[:, lit] = 0.0
+    return relighter
+
+
+# ---------------------------------------------------------------------------------------------
+# The lighting handed to the model
+# ---------------------------------------------------------------------------------------------
+
+def test_the_items_carry_the_datasets_stored_camera_frame_probes(dataset):
+    items = load_items(dataset, "test")
+    data = RelightDataset(dataset, "test")
+    assert [i.name for i in items] == ["scene_000000 0→1", "scene_000000 1→0", "scene_000001 0→1",
+                                       "scene_000001 1→0"]
+    for index, item in enumerate(items):
+        source = data.items[index]
+        np.testing.assert_array_equal(item.probe, read_stream(source.sample_dir, f"env{source.target_light}", [0]))
+        np.testing.assert_array_equal(item.other_probe, read_stream(source.sample_dir, f"env{source.input_light}", [0]))
+        # What training sees for this item is the same panorama's encodings.
+        encoded = lighting.encode_lighting(torch.from_numpy(item.probe))
+        for key in ("env_ldr", "env_log", "env_dir"):
+            torch.testing.assert_close(data[index][key], encoded[key].permute(3, 0, 1, 2), rtol=0, atol=0)
+        np.testing.assert_array_equal(item.input, (data[index]["input"].permute(1, 2, 3, 0).numpy() + 1) / 2)
+
+
+def test_a_camera_probe_is_used_as_given_and_equals_the_probe_it_was_made_from():
+    relighter = _tiny()
+    frames = np.random.default_rng(0).random((1, SIZE, SIZE, 3), dtype=np.float32)
+    probe = _sun_probe(90.0)
+    panorama = lighting.probe_in_camera(probe, SIZE, SIZE, rotation=40.0)
+    # A camera-frame panorama is not a lat-long file: re-gridding it at rotation 0 (identity camera)
+    # mirrors it and shifts its rows, so it must not go through `probe` — hence `camera_probe`.
+    assert (lighting.probe_in_camera(panorama, SIZE, SIZE, rotation=0.0) - panorama).abs().mean() > 1.0
+    via_probe = relighter.relight(RelightRequest(frames, probe=probe, rotation=40.0, steps=2))
+    via_panorama = relighter.relight(RelightRequest(frames, camera_probe=panorama.numpy(), steps=2))
+    via_bigger = relighter.relight(RelightRequest(
+        frames, camera_probe=lighting.probe_in_camera(probe, 2 * SIZE, 2 * SIZE, rotation=40.0)[None], steps=2))
+    np.testing.assert_array_equal(via_panorama.relit, via_probe.relit)
+    np.testing.assert_array_equal(via_panorama.albedo, via_probe.albedo)
+    assert np.abs(via_bigger.relit - via_probe.relit).max() < 0.02        # re-gridded to the frames' size
+    elsewhere = relighter.relight(RelightRequest(frames, probe=probe, rotation=220.0, steps=2))
+    assert np.abs(elsewhere.relit - via_probe.relit).mean() > 1e-3        # the light does reach the output
+
+
+def test_resize_panorama_regrids_camera_frame_panoramas():
+    d = lighting.texel_directions(64, 128)                  # a smooth sky: low-order terms of the direction
+    probe = torch.stack([1 + 0.5 * d[..., 0], 1 + 0.4 * d[..., 1] * d[..., 2], 0.8 + 0.3 * d[..., 2] ** 2], -1)
+    big = lighting.probe_in_camera(probe, 64, 64, rotation=25.0)
+    small = lighting.probe_in_camera(probe, 32, 32, rotation=25.0)
+    assert lighting.resize_panorama(big, 64, 64) is big
+    assert (lighting.resize_panorama(big, 32, 32) - small).abs().max() < 0.005
+    assert (lighting.resize_panorama(small, 64, 64) - big).abs().mean() < 0.005
+    assert (lighting.resize_panorama(big, 32, 32) - lighting.probe_in_camera(probe, 32, 32, rotation=70.0)
+            ).abs().mean() > 0.05                         # the check can tell another light apart
+    sun = torch.zeros(64, 64, 3)
+    sun[20, 33] = 100.0
+    kept = float(lighting.resize_panorama(sun, 16, 16).sum()) * 16 / float(sun.sum())
+    assert 0.9 < kept < 1.1                              # a small sun is averaged in, never skipped
+
+
+def test_bad_camera_probe_shapes_are_one_sentence():
+    relighter = _tiny()
+    frames = np.zeros((2, SIZE, SIZE, 3), np.float32)
+    for bad in (np.zeros((SIZE, SIZE)), np.zeros((3, SIZE, SIZE, 3)), np.zeros((SIZE, SIZE, 4))):
+        with pytest.raises(InputError, match="camera-frame probe has shape"):
+            relighter.relight(RelightRequest(frames, camera_probe=bad, steps=1))
+
+
+# ---------------------------------------------------------------------------------------------
+# The probe-following margin
+# ---------------------------------------------------------------------------------------------
+
+def test_the_margin_is_zero_for_a_model_that_ignores_the_probe(dataset):
+    item = load_items(dataset, "test", count=1)[0]
+    options = RunOptions(steps=2)
+    blind = _tiny(blind=True)
+    metrics, _ = measure_item(blind, item, options)
+    assert metrics["margin"] == pytest.approx(0.0, abs=1e-9)
+    # The same network with its lighting weights kept responds to the probe, and the margin moves.
+    seeing = _tiny()
+    relit_b, _, _ = relight(seeing, item.input, item.probe, options)
+    relit_a, _, _ = relight(seeing, item.input, item.other_probe, options)
+    assert np.abs(relit_a - relit_b).mean() > 1e-4
+    assert abs(probe_margin(relit_b, relit_a, item)) > 1e-6
+
+
+def test_the_margin_rewards_following_the_probe(dataset):
+    item = load_items(dataset, "test", count=1)[0]
+    perfect = probe_margin(item.target, item.input, item)   # each probe's result is that probe's scene
+    assert perfect > 10
+    assert probe_margin(item.input, item.target, item) == pytest.approx(-perfect)   # the wrong way round
+
+
+# ---------------------------------------------------------------------------------------------
+# A whole run through the CLI
+# ---------------------------------------------------------------------------------------------
+
+def test_evaluate_end_to_end_on_the_tiny_preset(dataset, tmp_path, capsys):
+    out = tmp_path / "eval"
+    assert main(["evaluate", "--data", str(dataset), "--model", "tiny", "--steps", "2", "--limit", "2",
+                 "--train-items", "1", "--sigma-items", "1", "--steps-list", "1,2", "--eval-size", "96",
+                 "--out", str(out)]) == 0
+    results = json.loads((out / "metrics.json").read_text())
+    test = results["test"]
+    assert test["items"] == 2 and results["train"]["items"] == 1
+    assert results["model"]["steps"] == 2 and results["data"]["model_size"] == [64, 64]   # tiny works at 64 px
+    # The floor is the input scored as the result, computed here independently.
+    items = load_items(dataset, "test", count=2)
+    floors = []
+    for item in items:
+        big = [torch.nn.functional.interpolate(torch.from_numpy(x).permute(0, 3, 1, 2), size=(64, 64),
+                                               mode="bilinear", antialias=True, align_corners=False)
+               .clamp(0, 1).permute(0, 2, 3, 1).numpy() for x in (item.input, item.target)]
+        mask = torch.nn.functional.interpolate(torch.from_numpy(item.mask)[:, None], size=(64, 64),
+                                               mode="bilinear", antialias=True, align_corners=False)[:, 0] > 0.5
+        floors.append(protocol_metrics(big[0], big[1], mask.numpy())["psnr"])
+    assert test["floor"]["relit"]["psnr"] == pytest.approx(np.mean(floors), abs=1e-6)
+    for section in ("model", "floor", "ceiling"):
+        for kind in ("relit", "albedo"):
+            assert 5 < test[section][kind]["psnr"] <= 100 and -1 <= test[section][kind]["ssim"] <= 1
+    assert test["margin"] is not None and math.isfinite(test["margin"])
+    assert [row["steps"] for row in results["steps"]] == [1, 2]
+    assert results["steps"][1]["relit"] == pytest.approx(test["model"]["relit"])     # the main run, reused
+    sigmas = [row["sigma"] for row in results["sigma"]["test"]["rows"]]
+    assert len(sigmas) == 3 and sigmas[0] == pytest.approx(80.0) and sigmas[-1] == pytest.approx(0.002)
+    assert results["sigma"]["train"]["items"] == 1
+    assert {"relit_psnr", "relit_psnr_no_light", "albedo_psnr", "relit_latent_mse"} <= set(results["sigma"]["test"]["rows"][0])
+    full = results["full_resolution"]
+    assert full["size"] == 96 and set(full["model"]["relit"]) == {"plain", "guided"}
+    # With a perfect model, guided ratio upsampling must recover more detail than plain resizing.
+    assert full["oracle"]["relit"]["guided"]["psnr"] > full["oracle"]["relit"]["plain"]["psnr"]
+    report = (out / "metrics.md").read_text()
+    for heading in ("| model |", "floor: input returned unchanged", "ceiling: tokenizer", "Probe-following margin",
+                    "Train-set reproduction", "Steps vs quality", "Denoiser error per σ", "Full-resolution output"):
+        assert heading in report
+    from PIL import Image
+    grids = sorted(p.name for p in (out / "grids").iterdir())
+    assert grids == ["full_000.png", "full_001.png", "test_000.png", "test_001.png", "train_000.png"]
+    width, height = Image.open(out / "grids" / "test_000.png").size
+    assert width == 5 * 128 and height > 128            # five columns (64 px frames shown at 128)
+    assert "relit" in capsys.readouterr().out
+
+
+def test_evaluate_bad_input_is_one_sentence_and_exit_2(dataset, tmp_path, capsys):
+    assert main(["evaluate", "--data", str(tmp_path / "missing"), "--model", "tiny", "--out", str(tmp_path)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: No dataset manifest") and err.count("\n") == 1
+    assert main(["evaluate", "--data", str(dataset), "--model", "tiny", "--eval-size", "64",
+                 "--out", str(tmp_path)]) == 2
+    assert "must be larger than the model's working size" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as exit_info:
+        main(["evaluate", "--data", str(dataset), "--steps-list", "5,x", "--out", str(tmp_path)])
+    assert exit_info.value.code == 2

@@ -1,0 +1,137 @@
+"""The default model's pieces: the lossless pixel tokenizer, the wide token layout, the lighting grid,
+image packs and the fast trainer, end to end through a saved model folder and the Relighter."""
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from relight_core import lighting
+from relight_core.checkpoint import DIT_FILE, TOKENIZER_FILE, load_model
+from relight_core.data.dataset import write_frame, write_manifest, write_meta
+from relight_core.dit import CHANNELS, DiTConfig, JointDiT, assemble_inputs, channel_layout, pack_lighting
+from relight_core.errors import InputError
+from relight_core.pipeline import Relighter, RelightRequest
+from relight_core.tokenizer import PixelTokenizer, build_tokenizer
+from relight_core.training.fast import FastConfig, make_batch, merge_shards, train
+from relight_core.training.pack import load_pack, write_pack
+
+
+def test_pixel_tokenizer_is_lossless_and_spatially_local():
+    tok = build_tokenizer({"type": "pixel", "patch": 8})
+    video = torch.rand(2, 3, 3, 32, 48) * 2 - 1
+    latents = tok.encode(video)
+    assert latents.shape == (2, 192, 3, 4, 6)
+    assert torch.equal(tok.decode(latents), video)
+    # Latent pixel (i, j) holds exactly the 8×8 block (i, j): changing one block changes one latent pixel.
+    changed = video.clone()
+    changed[:, :, :, 8:16, 16:24] = 0
+    diff = (tok.encode(changed) - latents).abs().sum(dim=(0, 1, 2))
+    assert diff[1, 2] > 0 and diff.sum() == diff[1, 2]
+    # Channel order (c, dy, dx): channel 0 is the top-left red pixel of each block.
+    assert torch.equal(latents[:, 0], video[:, 0, :, ::8, ::8])
+
+
+def test_pixel_tokenizer_spec_errors_are_one_sentence():
+    with pytest.raises(InputError, match="Unknown pixel tokenizer keys"):
+        build_tokenizer({"type": "pixel", "channels": 3})
+    with pytest.raises(InputError, match="cannot be tokenized"):
+        PixelTokenizer(8).encode(torch.zeros(1, 3, 1, 20, 32))
+
+
+def test_channel_layout_generalises_the_released_72():
+    assert channel_layout(16) == CHANNELS and CHANNELS["clip_type"].stop == 72
+    wide = channel_layout(192)
+    assert wide["noisy"] == slice(0, 192) and wide["env_ldr"] == slice(193, 385)
+    assert wide["clip_type"] == slice(4 * 192 + 5, 4 * 192 + 8)
+    z = torch.randn(1, 192, 1, 2, 2)
+    x = assemble_inputs(torch.cat([z, z, z], 2), torch.ones(1, 1, 3, 1, 1), pack_lighting(z, None, z), None)
+    assert x.shape[1] == wide["padding_mask"].stop
+    assert torch.equal(x[:, wide["env_ldr"], 1], z[:, :, 0]) and bool((x[:, wide["env_log"]] == 0).all())
+    assert bool((x[:, wide["env_ldr"], 0] == 0).all())  # lighting only in the relit clip
+    dit = JointDiT(DiTConfig(width=32, depth=1, num_heads=2, adaln_lora_dim=8, patch_spatial=1, out_channels=192))
+    assert dit(x, torch.zeros(1)).shape == (1, 192, 3, 2, 2)
+
+
+def test_lowpass_panorama_keeps_energy_and_is_identity_at_full_size():
+    pan = torch.zeros(1, 64, 64, 3)
+    pan[0, 20, 40] = 1000.0                                  # a one-pixel sun
+    small = lighting.downsample_panorama(pan, 16)
+    assert small.shape == (1, 16, 16, 3)
+    assert torch.allclose(small.mean(), pan.mean()) and small[0, 5, 10, 0] == pytest.approx(1000 / 16)
+    low = lighting.lowpass_panorama(pan, 16)
+    assert low.shape == pan.shape and low[0, 20, 40, 0] < 1000 and low.mean() == pytest.approx(float(pan.mean()), rel=0.05)
+    assert lighting.lowpass_panorama(pan, 64) is pan and lighting.lowpass_panorama(pan, None) is pan
+
+
+def _write_dataset(root, scenes=3, size=32):
+    rng = np.random.default_rng(0)
+    split = root / "train"
+    for i in range(scenes):
+        sample = split / f"scene_{i:06d}"
+        for name in ("rgb0", "rgb1", "albedo"):
+            write_frame(sample, name, 0, rng.random((size, size, 3)).astype(np.float32))
+        write_frame(sample, "mask", 0, (rng.random((size, size)) > 0.5).astype(np.float32))
+        for light in (0, 1):
+            write_frame(sample, f"env{light}", 0, rng.random((size, size, 3)).astype(np.float32) * 5)
+        write_meta(sample, {"kind": "synthetic", "frames": 1, "height": size, "width": size, "lights": 2})
+    write_manifest(split)
+    return root
+
+
+def test_pack_round_trip(tmp_path):
+    from relight_core.data.files import read_exr, read_image
+
+    root = _write_dataset(tmp_path / "data")
+    count = write_pack(root, "train", tmp_path / "p.npz", lighting_size=8)
+    pack = load_pack(tmp_path / "p.npz")
+    assert count == 3 and pack["rgb"].shape == (3, 2, 3, 32, 32) and pack["env"].shape == (3, 2, 8, 8, 3)
+    scene = root / "train" / "scene_000001"
+    original = torch.from_numpy(read_image(scene / "rgb1" / "0000.png")).permute(2, 0, 1) * 255
+    assert (pack["rgb"][1, 1].float() - original).abs().mean() < 6          # JPEG, quality 92
+    assert torch.equal(pack["mask"][1], torch.from_numpy(read_image(scene / "mask" / "0000.png") > 0.5))
+    env = lighting.downsample_panorama(torch.from_numpy(read_exr(scene / "env0" / "0000.exr"))[None], 8)[0]
+    assert torch.allclose(pack["env"][1, 0], env, rtol=2e-3, atol=1e-3)     # stored as fp16
+
+
+def test_batches_flip_image_and_probe_together(tmp_path):
+    write_pack(_write_dataset(tmp_path / "data"), "train", tmp_path / "p.npz", lighting_size=8)
+    pack = load_pack(tmp_path / "p.npz")
+    tok = PixelTokenizer(8)
+    idx, target = torch.tensor([0, 2]), torch.tensor([1, 0])
+    plain = make_batch(pack, tok, idx, target, torch.tensor([False, False]))
+    flipped = make_batch(pack, tok, idx, target, torch.tensor([True, False]))
+    assert torch.equal(tok.decode(flipped["relit"])[0], tok.decode(plain["relit"])[0].flip(-1))
+    assert torch.equal(flipped["relit"][1], plain["relit"][1])
+    # Input is the other light's image; the lighting is the target light's probe.
+    assert torch.equal(tok.decode(plain["input"])[0, :, 0], pack["rgb"][0, 0].float() / 127.5 - 1)
+    ldr = lighting.encode_lighting(lighting.upsample_panorama(pack["env"][2, 0][None], 32, 32))["env_ldr"]
+    assert torch.allclose(tok.decode(plain["lighting"][1:2, :192])[0, :, 0], ldr[0].permute(2, 0, 1), atol=1e-6)
+    # The flipped probe: radiance mirrored, directions unchanged.
+    dir_plain, dir_flipped = plain["lighting"][0, 2 * 193:3 * 193 - 1], flipped["lighting"][0, 2 * 193:3 * 193 - 1]
+    assert torch.equal(dir_plain, dir_flipped)
+
+
+def test_fast_training_exports_a_model_the_relighter_runs(tmp_path):
+    root = _write_dataset(tmp_path / "data")
+    write_pack(root, "train", tmp_path / "p.npz", lighting_size=8)
+    config = FastConfig(pack=tmp_path / "p.npz", out=tmp_path / "run", minutes=0.02, device="cpu", batch=2,
+                        width=32, depth=1, num_heads=2, log_every=1, eval_items=2, eval_steps=2, warmup=1)
+    summary = train(config)
+    assert summary["steps"] >= 1 and set(summary["sampled_psnr"]["train"]) == {"relit", "albedo", "floor", "margin"}
+    model = tmp_path / "run" / "model"
+    assert (model / DIT_FILE).is_file() and not (model / TOKENIZER_FILE).exists()
+    merged = merge_shards(tmp_path / "run", tmp_path / "run" / "config.json", tmp_path / "merged")
+    from safetensors.torch import load_file
+    a, b = load_file(str(model / DIT_FILE)), load_file(str(merged / DIT_FILE))
+    assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
+    spec = json.loads((model / "config.json").read_text())
+    assert spec["tokenizer"] == {"type": "pixel", "patch": 8} and spec["lighting_size"] == 8
+    spec, dit, tok = load_model(model)
+    assert isinstance(tok, PixelTokenizer) and spec.chunk_frames == 1
+    relighter = Relighter(spec, dit, tok)
+    frames = np.random.default_rng(1).random((3, 32, 32, 3)).astype(np.float32)
+    result = relighter.relight(RelightRequest(frames=frames, probe=np.ones((16, 32, 3), np.float32), steps=2))
+    assert result.relit.shape == frames.shape and result.info["chunks"] == 3
+    assert np.isfinite(result.albedo).all()

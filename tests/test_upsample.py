@@ -1,0 +1,87 @@
+"""Full-resolution output: guided ratio upsampling, and the CLI writing results at the input's size."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from relight_core import media
+from relight_core.cli import main
+from relight_core.errors import InputError
+from relight_core.upsample import guided_ratio_upsample, plain_upsample
+from tests.factory import make_sun_probe
+
+
+def _photo(t=1, h=75, w=100, seed=0) -> np.ndarray:
+    """A detailed picture: a fine checkerboard over smooth colour, in (0.05, 1)."""
+    rng = np.random.default_rng(seed)
+    yy, xx = np.mgrid[0:h, 0:w]
+    checker = ((yy // 3 + xx // 3) % 2)[..., None] * 0.3
+    base = np.stack([xx / w, yy / h, 0.5 + 0.3 * np.sin(xx / 7)], -1) * 0.6 + 0.05
+    frames = [np.clip(base + checker + 0.02 * rng.standard_normal((h, w, 3)), 0.05, 1) for _ in range(t)]
+    return np.stack(frames).astype(np.float32)
+
+
+def _small(frames: np.ndarray, long_side: int = 32) -> np.ndarray:
+    return media.resize_frames(frames, long_side, multiple=16)
+
+
+@pytest.mark.parametrize("t", [1, 3])
+def test_returns_the_full_inputs_size(t):
+    full = _photo(t)
+    small = _small(full)
+    assert small.shape == (t, 32, 32, 3)
+    out = guided_ratio_upsample(full, small, np.clip(small * 0.7, 0, 1))
+    assert out.shape == full.shape and out.dtype == np.float32
+    assert 0.0 <= out.min() and out.max() <= 1.0
+    assert guided_ratio_upsample(full[0], small[0], small[0]).shape == full.shape[1:]   # a single image
+
+
+def test_a_constant_ratio_relighting_is_reproduced_exactly():
+    full = _photo(2)
+    small = _small(full)
+    gain = np.array([0.5, 1.3, 0.8], np.float32)        # a colour cast; the green channel clips
+    out = guided_ratio_upsample(full, small, small * gain)
+    np.testing.assert_array_equal(out, np.clip(full * gain, 0, 1))
+    assert (out[..., 1] == 1.0).any()
+
+
+def test_the_ratio_follows_the_inputs_edges_better_than_resizing():
+    """A shadow whose edge is a sharp edge of the input: the guided ratio keeps it, resizing blurs it."""
+    full = _photo(1, 96, 128)
+    h, w = full.shape[1:3]
+    shade = np.ones((1, h, w, 1), np.float32)
+    shade[:, :, : w // 2 + 5] = 0.35                    # not on the model grid's pixel boundaries
+    full = full.copy()
+    full[:, :, w // 2 + 5:] = np.clip(full[:, :, w // 2 + 5:] + 0.25, 0, 1)   # the input has that edge too
+    truth = np.clip(full * shade, 0, 1)
+    small = _small(full)
+    small_truth = _small(truth)                         # a perfect model at its own size
+    guided = guided_ratio_upsample(full, small, small_truth)
+    plain = plain_upsample(small_truth, h, w)
+    assert np.abs(guided - truth).mean() < 0.5 * np.abs(plain - truth).mean()
+
+
+def test_same_size_returns_the_output_and_bad_shapes_are_one_sentence():
+    small = _photo(1, 32, 32)
+    out = small * 0.5
+    np.testing.assert_array_equal(guided_ratio_upsample(small, small, out), out)
+    with pytest.raises(InputError, match="matching frame counts"):
+        guided_ratio_upsample(_photo(2), _small(_photo(1)), _small(_photo(1)))
+    with pytest.raises(InputError, match="matching frame counts"):
+        guided_ratio_upsample(_photo(1), _small(_photo(1)), _small(_photo(1))[..., :2])
+
+
+def test_cli_writes_the_inputs_resolution_unless_raw(tmp_path):
+    photo = tmp_path / "photo.png"
+    media.save_image(photo, _photo(1, 64, 96)[0])
+    probe = make_sun_probe(tmp_path / "sun.exr")
+    fast = ["--model", "tiny", "--steps", "1", "--size", "48"]
+    assert main(["relight", str(photo), "--probe", str(probe), "--out", str(tmp_path / "full"), *fast]) == 0
+    assert main(["relight", str(photo), "--probe", str(probe), "--out", str(tmp_path / "raw"), "--raw", *fast]) == 0
+    for name in ("relit.png", "albedo.png"):
+        assert Image.open(tmp_path / "full" / name).size == (96, 64)
+        assert Image.open(tmp_path / "raw" / name).size == (48, 32)
+    assert main(["albedo", str(photo), "--out", str(tmp_path / "albedo"), *fast]) == 0
+    assert Image.open(tmp_path / "albedo" / "albedo.png").size == (96, 64)
