@@ -18,11 +18,16 @@ def test_default_model_relights_an_image():
     relighter = Relighter.load("default", device="cpu")
     frames = media.resize_frames(media.load_media(root / "examples" / "inputs" / "objects.png").frames,
                                  relighter.spec.size)
-    probe = load_probe(root / "envmaps" / "sunset.exr")
-    result = relighter.relight(RelightRequest(frames, probe=probe, steps=8))
-    assert result.relit.shape == frames.shape and np.isfinite(result.relit).all()
-    # A trained model keeps the scene: its outputs follow the input pixel by pixel, where an
-    # untrained one gives noise (correlation ≈ 0). Measured with the shipped model at 8 steps under
-    # this probe: relit +0.56, albedo −0.35 (this early model inverts the bright backdrop's albedo).
-    assert np.corrcoef(result.relit.ravel(), frames.ravel())[0, 1] > 0.3
-    assert abs(np.corrcoef(result.albedo.ravel(), frames.ravel())[0, 1]) > 0.15
+    results = {name: relighter.relight(RelightRequest(frames, probe=load_probe(root / "envmaps" / f"{name}.exr")))
+               for name in ("sunset", "studio")}
+    for result in results.values():
+        assert result.relit.shape == frames.shape and np.isfinite(result.relit).all()
+        # A trained model keeps the scene: its outputs follow the input pixel by pixel, where an
+        # untrained one gives noise (correlation ≈ 0). Measured with the shipped model at its
+        # default steps: relit +0.85 (sunset), +0.78 (studio).
+        assert np.corrcoef(result.relit.ravel(), frames.ravel())[0, 1] > 0.5
+    # The probe changes the light: the studio probe leaves this scene darker than the sunset
+    # (measured mean 0.21 vs 0.44), while the albedo, a property of the scene, barely changes.
+    sunset, studio = results["sunset"], results["studio"]
+    assert sunset.relit.mean() - studio.relit.mean() > 0.1
+    assert np.abs(sunset.albedo - studio.albedo).mean() < np.abs(sunset.relit - studio.relit).mean() / 2
