@@ -13,7 +13,6 @@ import argparse
 import contextlib
 import math
 import signal
-import sys
 import threading
 
 MAX_SEED = 2**63 - 1
@@ -100,8 +99,3 @@ def terminate_as_interrupt():
         yield
     finally:
         signal.signal(signal.SIGTERM, previous)
-
-
-def print_error(message: str) -> None:
-    """One line on stderr: `error: <message>`."""
-    print("error: " + " ".join(str(message).split()), file=sys.stderr)

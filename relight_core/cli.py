@@ -14,7 +14,7 @@ import tempfile
 from pathlib import Path
 
 from relight_core.arguments import (MAX_INTENSITY, MAX_ROTATION_DEG, MAX_SEED, OneLineParser, finite_float,
-                                    seed, terminate_as_interrupt)
+                                    int_range, seed, terminate_as_interrupt)
 from relight_core.data.cli import add_data_commands, positive_int
 from relight_core.errors import InputError
 from relight_core.evaluation.cli import add_evaluation_commands
@@ -64,6 +64,15 @@ def _frame_range(text: str) -> tuple[int, int | None]:
         raise argparse.ArgumentTypeError(f"'{text}' is not a frame range; write e.g. 0:57.") from None
 
 
+def _sampler(text: str) -> str:
+    """--sampler: one of the samplers in relight_core.diffusion."""
+    from relight_core.diffusion import SAMPLERS
+
+    if text not in SAMPLERS:
+        raise argparse.ArgumentTypeError(f"'{text}' is not a sampler; choose one of {', '.join(SAMPLERS)}.")
+    return text
+
+
 def _precision(text: str) -> str:
     """--precision: one of auto, fp32, bf16, fp16."""
     from relight_core.precision import PRECISIONS
@@ -82,8 +91,9 @@ def _add_precision_arg(p: argparse.ArgumentParser, default: str | None) -> None:
 def _add_model_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--model", default="default",
                    help="'default' (shipped small model), a preset (tiny, small, unirelight-7b) or a model folder")
-    p.add_argument("--steps", type=positive_int, default=None, help="sampling steps (default: the model's)")
-    p.add_argument("--sampler", default=None, help="res2ab (default), euler or heun")
+    p.add_argument("--steps", type=int_range(1, 1000, "number of steps"), default=None,
+                   help="sampling steps, 1 to 1000 (default: the model's)")
+    p.add_argument("--sampler", type=_sampler, default=None, help="res2ab (default), euler or heun")
     p.add_argument("--guidance", type=finite_float(0.0, 100.0, what="guidance"), default=0.0,
                    help="classifier-free guidance (0 = off, one pass)")
     p.add_argument("--size", type=positive_int, default=None, help="working resolution: long side in pixels")
@@ -103,6 +113,9 @@ def _add_probe_args(p: argparse.ArgumentParser, required: bool) -> None:
     p.add_argument("--rotate-light", action="store_true", help="sweep the probe's yaw through 360° over the clip")
     p.add_argument("--intensity", type=finite_float(0.0, MAX_INTENSITY, low_open=True, what="intensity"),
                    default=1.0, help="multiplier on the probe's radiance (> 0)")
+    p.add_argument("--temperature", type=float, default=None, metavar="KELVIN",
+                   help="the light's colour temperature: 6500 is neutral (the default), lower warmer, higher "
+                        "cooler (1700 to 25000)")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -208,6 +221,8 @@ def _run_media_command(args) -> int:
         base["rotation"] = args.rotation
     if getattr(args, "rotate_light", False):
         base["rotate_light"] = True
+    if getattr(args, "temperature", None) is not None:
+        base["temperature"] = lighting.check_temperature(args.temperature)  # out of range: one sentence
 
     if args.command == "relight":
         jobs = [("", RelightRequest(frames, mode="relight", probe=probe, seed=args.seed, **base))]

@@ -31,6 +31,7 @@ import torch.nn.functional as F  # noqa: E402
 from PIL import Image, ImageOps, UnidentifiedImageError  # noqa: E402
 
 from relight_core.errors import InputError  # noqa: E402
+from relight_core.stderr import quiet_about  # noqa: E402
 
 if _OPENCV_QUIET:
     cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
@@ -256,7 +257,9 @@ def load_image(path) -> np.ndarray:
     if kind == "video":
         raise InputError(f"{_name(path)} is a video, not an image; load it with load_media or load_video.")
     if kind == "linear":
-        rgb = linear_to_srgb(np.clip(np.nan_to_num(_read_linear(path), nan=0.0, posinf=1.0, neginf=0.0), 0.0, 1.0))
+        with quiet_about(path):  # OpenEXR prints its own line about a damaged file; ours says it
+            linear = _read_linear(path)
+        rgb = linear_to_srgb(np.clip(np.nan_to_num(linear, nan=0.0, posinf=1.0, neginf=0.0), 0.0, 1.0))
     else:
         rgb = _read_pillow(path)
     return np.clip(rgb, 0.0, 1.0).astype(np.float32)[None]
@@ -267,11 +270,19 @@ def load_image(path) -> np.ndarray:
 # ---------------------------------------------------------------------------------------------
 
 
+def _reason(error: av.FFmpegError) -> str:
+    """FFmpeg's reason in words ("invalid data found when processing input"), without its error number
+    and the server-side path that str(error) carries."""
+    words = getattr(error, "strerror", None) or str(error)
+    return words[:1].lower() + words[1:]
+
+
 def _open_video(path: str) -> av.container.InputContainer:
     try:
         container = av.open(path)
     except av.FFmpegError as error:
-        raise InputError(f"{_name(path)} could not be opened as a video ({error}); re-export it as MP4.") from error
+        raise InputError(f"{_name(path)} could not be opened as a video ({_reason(error)}); "
+                         "re-export it as MP4.") from error
     if not container.streams.video:
         container.close()
         raise InputError(f"{_name(path)} contains no video stream; pick a video with picture.")
@@ -301,7 +312,8 @@ def probe_video(path) -> VideoInfo:
         try:
             first = next(container.decode(stream), None)
         except av.FFmpegError as error:
-            raise InputError(f"{_name(path)} has an undecodable video stream ({error}); re-export it.") from error
+            raise InputError(f"{_name(path)} has an undecodable video stream ({_reason(error)}); "
+                             "re-export it.") from error
         if first is None:
             raise InputError(f"{_name(path)} contains no video frames; pick a video with at least one frame.")
         if round((first.rotation or 0) / 90) % 2:
@@ -313,7 +325,8 @@ def _decoded(container, path: str) -> Iterator[av.VideoFrame]:
     try:
         yield from container.decode(container.streams.video[0])
     except av.FFmpegError as error:
-        raise InputError(f"{_name(path)} is damaged or truncated ({error}); re-export or re-download it.") from error
+        raise InputError(f"{_name(path)} is damaged or truncated ({_reason(error)}); "
+                         "re-export or re-download it.") from error
 
 
 def _resize(frames: np.ndarray, H: int, W: int) -> np.ndarray:
@@ -499,7 +512,7 @@ def save_video(path, frames: np.ndarray, fps: float, audio_from=None, audio_star
                     _copy_audio(output, os.fspath(audio_from), audio_start, T / float(rate))
                 except av.FFmpegError as error:
                     raise InputError(
-                        f"The audio of {_name(os.fspath(audio_from))} could not be copied ({error}); "
+                        f"The audio of {_name(os.fspath(audio_from))} could not be copied ({_reason(error)}); "
                         "save without audio."
                     ) from error
             for index, rgb in enumerate(frames):

@@ -61,6 +61,8 @@ class RelightRequest:
     sweep: tuple[float, float] = (0.0, 360.0)
     intensity: float = 1.0
     temperature: float = lighting.NEUTRAL_KELVIN  # the light's colour temperature, K (lower = warmer)
+    camera_pitch: float = 0.0             # degrees the camera looks up (lighting.camera_rotation)
+    camera_roll: float = 0.0              # degrees the camera is turned counter-clockwise about its view
     albedo: np.ndarray | None = None      # [T,H,W,3] for mode="render"
     # Linear panoramas already in the camera frame (the dataset's env*/ files): [H,W,3] for every
     # frame or [T,H,W,3] per frame, any size (re-gridded to the frames'). Used as given, in place of
@@ -354,6 +356,7 @@ class Relighter:
         if not math.isfinite(request.intensity) or request.intensity <= 0:
             raise InputError(f"Intensity must be a positive number, not {request.intensity}.")
         lighting.check_temperature(request.temperature)
+        lighting.camera_rotation(request.camera_pitch, request.camera_roll)  # refuses absurd angles
         if isinstance(request.seed, bool) or not isinstance(request.seed, (int, np.integer)) \
                 or not 0 <= int(request.seed) <= MAX_SEED:
             raise InputError(f"The seed {request.seed} is out of range; use a whole number from 0 to {MAX_SEED}.")
@@ -398,17 +401,20 @@ class Relighter:
         with torch.no_grad(), self._autocast():
             return self.tokenizer.encode(video.permute(3, 0, 1, 2)[None].to(self.device)).float()
 
-    def _lighting_latents(self, probe: torch.Tensor, rotations: list[float], height: int, width: int
-                          ) -> torch.Tensor:
-        """[1, 51, t, h, w]: (env_ldr, mask, env_log, mask, env_dir, mask) latents of one chunk."""
-        key = hashlib.sha1(probe.numpy().tobytes() + repr((rotations, height, width)).encode()).hexdigest()
+    def _lighting_latents(self, probe: torch.Tensor, rotations: list[float], height: int, width: int,
+                          camera: torch.Tensor | None = None) -> torch.Tensor:
+        """[1, 51, t, h, w]: (env_ldr, mask, env_log, mask, env_dir, mask) latents of one chunk;
+        `camera` is the camera-to-world rotation (`lighting.camera_rotation`) of a tilted camera."""
+        tilt = None if camera is None else camera.tolist()
+        key = hashlib.sha1(probe.numpy().tobytes() + repr((rotations, height, width, tilt)).encode()).hexdigest()
         if key in self._latent_cache:
             self._latent_cache.move_to_end(key)
             return self._latent_cache[key]
         if probe.dim() == 4:  # RelightRequest.camera_probe: the chunk's panoramas, already in the camera frame
             panoramas = probe
         else:
-            panoramas = torch.stack([lighting.probe_in_camera(probe, height, width, rotation=r) for r in rotations])
+            panoramas = torch.stack([lighting.probe_in_camera(probe, height, width, rotation=r, cam_to_world=camera)
+                                     for r in rotations])
         panoramas = lighting.lowpass_panorama(panoramas, self.spec.lighting_size)
         encodings = lighting.encode_lighting(panoramas)
         parts = []
@@ -449,7 +455,8 @@ class Relighter:
         if probe is None:
             lighting_latents = torch.zeros(1, 3 * (c + 1), t, h, w, device=self.device)
         else:
-            lighting_latents = self._lighting_latents(probe, rotations, frames.shape[1], frames.shape[2])
+            camera = lighting.camera_rotation(request.camera_pitch, request.camera_roll)
+            lighting_latents = self._lighting_latents(probe, rotations, frames.shape[1], frames.shape[2], camera)
         return condition, mask, lighting_latents
 
     def _network(self, x_in: torch.Tensor, c_noise: torch.Tensor, lighting: torch.Tensor,

@@ -44,9 +44,12 @@ class PreviewConfig:
 # Shading (pure torch; what the pyvista meshes are coloured with)
 # ---------------------------------------------------------------------------------------------
 
-def camera_radiance(probe: torch.Tensor, directions: torch.Tensor, rotation: float) -> torch.Tensor:
-    """Radiance [N,3] arriving from camera-frame directions [N,3]: the lookup `probe_in_camera` makes."""
-    return lighting.sample_probe(probe, directions @ lighting.yaw_matrix(rotation).T)
+def camera_radiance(probe: torch.Tensor, directions: torch.Tensor, rotation: float,
+                    camera: torch.Tensor | None = None) -> torch.Tensor:
+    """Radiance [N,3] arriving from camera-frame directions [N,3]: the lookup `probe_in_camera` makes,
+    probe(R_y(rotation)·c2w·d), with `camera` the c2w rotation of a tilted camera (None: level)."""
+    world = directions if camera is None else directions @ camera.T
+    return lighting.sample_probe(probe, world @ lighting.yaw_matrix(rotation).T)
 
 
 @functools.lru_cache(maxsize=8)
@@ -54,9 +57,10 @@ def _texel_directions(height: int) -> torch.Tensor:
     return lighting.texel_directions(height, 2 * height).reshape(-1, 3)                # [h·2h, 3]
 
 
-def camera_panorama(probe: torch.Tensor, rotation: float, height: int) -> torch.Tensor:
+def camera_panorama(probe: torch.Tensor, rotation: float, height: int,
+                    camera: torch.Tensor | None = None) -> torch.Tensor:
     """The camera-frame light in the standard lat-long layout (centre column = forward), [h,2h,3]."""
-    return camera_radiance(probe, _texel_directions(height), rotation).reshape(height, 2 * height, 3)
+    return camera_radiance(probe, _texel_directions(height), rotation, camera).reshape(height, 2 * height, 3)
 
 
 def reflect_view(normals: torch.Tensor) -> torch.Tensor:
@@ -65,17 +69,18 @@ def reflect_view(normals: torch.Tensor) -> torch.Tensor:
     return 2 * (normals @ view)[:, None] * normals - view
 
 
-def mirror_colors(probe: torch.Tensor, normals: torch.Tensor, rotation: float) -> torch.Tensor:
+def mirror_colors(probe: torch.Tensor, normals: torch.Tensor, rotation: float,
+                  camera: torch.Tensor | None = None) -> torch.Tensor:
     """Linear radiance [N,3] a perfect mirror with these camera-frame normals shows."""
-    return camera_radiance(probe, reflect_view(normals), rotation)
+    return camera_radiance(probe, reflect_view(normals), rotation, camera)
 
 
 def diffuse_colors(probe: torch.Tensor, normals: torch.Tensor, rotation: float, albedo: float,
-                   rows: int) -> torch.Tensor:
+                   rows: int, camera: torch.Tensor | None = None) -> torch.Tensor:
     """Linear radiance [N,3] of a Lambertian surface: cosine-weighted sum over a small panorama."""
     # Area-average first so a sun smaller than a coarse texel keeps its energy.
     pooled = _pool(probe, 4 * rows)
-    panorama = camera_panorama(pooled, rotation, rows).reshape(-1, 3)                 # [M,3]
+    panorama = camera_panorama(pooled, rotation, rows, camera).reshape(-1, 3)         # [M,3]
     directions = _texel_directions(rows)                                              # [M,3]
     theta = (torch.arange(rows, dtype=torch.float32) + 0.5) / rows * math.pi
     solid_angle = (math.pi / rows) * (math.pi / rows) * torch.sin(theta)              # [rows]
@@ -146,6 +151,9 @@ class _BallRenderer:
 
         size = self.config.ball_size
         plotter = pv.Plotter(off_screen=True, shape=(1, 2), window_size=(2 * size, size), border=False)
+        # Supersampling smooths the balls' rims (offscreen EGL has no multisampling, and pyvista
+        # replaces FXAA by SSAA there anyway).
+        plotter.enable_anti_aliasing("ssaa")
         self.mirror["rgb"] = np.zeros((self.mirror.n_points, 3), np.uint8)
         self.diffuse["rgb"] = np.zeros((self.diffuse.n_points, 3), np.uint8)
         for column, mesh in enumerate((self.mirror, self.diffuse)):
@@ -179,12 +187,13 @@ def _renderer(config: PreviewConfig) -> _BallRenderer:
         return _RENDERERS[config]
 
 
-def render_balls(probe: torch.Tensor, rotation: float, config: PreviewConfig = PreviewConfig()) -> np.ndarray:
+def render_balls(probe: torch.Tensor, rotation: float, config: PreviewConfig = PreviewConfig(),
+                 camera: torch.Tensor | None = None) -> np.ndarray:
     """Mirror ball (left) and diffuse ball (right) lit by the rotated probe, uint8 [S,2S,3]."""
     renderer = _renderer(config)
-    mirror_rgb = to_display(mirror_colors(probe, renderer.mirror_normals, rotation))
+    mirror_rgb = to_display(mirror_colors(probe, renderer.mirror_normals, rotation, camera))
     diffuse_rgb = to_display(diffuse_colors(probe, renderer.diffuse_normals, rotation, config.albedo,
-                                            config.irradiance_height))
+                                            config.irradiance_height, camera))
     return renderer.render(mirror_rgb, diffuse_rgb)
 
 
@@ -213,15 +222,18 @@ def probe_thumbnail(probe: torch.Tensor, height: int) -> np.ndarray:
 
 def render_preview(probe: torch.Tensor, rotation: float = lighting.DEFAULT_ROTATION,
                    intensity: float = 1.0, config: PreviewConfig = PreviewConfig(),
-                   temperature: float = lighting.NEUTRAL_KELVIN) -> np.ndarray:
+                   temperature: float = lighting.NEUTRAL_KELVIN, pitch: float = 0.0,
+                   roll: float = 0.0) -> np.ndarray:
     """The light preview: balls on top, panorama below, uint8 [S + S, 2S, 3].
 
-    The probe gets its exposure and colour temperature from `lighting.adjust_light`, as the
-    pipeline's request does, so the preview shows the light the model is given.
+    The probe gets its exposure and colour temperature from `lighting.adjust_light`, and the camera
+    its tilt from `lighting.camera_rotation(pitch, roll)`, as the pipeline's request does, so the
+    preview shows the light the model is given (a tilted camera moves the horizon and the balls).
     """
     probe = lighting.adjust_light(probe, intensity, temperature)
-    balls = render_balls(probe, rotation, config)
-    strip = panorama_image(camera_panorama(probe, rotation, config.ball_size))
+    camera = lighting.camera_rotation(pitch, roll)
+    balls = render_balls(probe, rotation, config, camera)
+    strip = panorama_image(camera_panorama(probe, rotation, config.ball_size, camera))
     return np.concatenate([balls, strip], axis=0)
 
 

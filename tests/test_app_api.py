@@ -117,6 +117,7 @@ def test_video_streams_chunks_and_keeps_fps(studio):
     media.save_video(clip, np.stack([np.roll(still, 4 * t, axis=1) for t in range(25)]), 12.0)
     shown = [plain(v) for v in client.predict(handle_file(str(clip)), api_name="/inspect_input")]
     assert "25 frames" in shown[-1]  # the info line
+    assert shown[-3:-1] == [0, 24]  # first and last frame: the range defaults to the whole clip
     updates = run_job(client, **relight_args(clip, frame_start=0, frame_end=24, size=64))
     partial = [u for u in updates[:-1] if u[5] and "relit-part0" in str(u[5])]
     assert partial, "the first chunk's video should appear before the job finishes"
@@ -150,17 +151,33 @@ def test_light_preview_endpoint_changes_with_rotation(studio):
     # With the light sweeping across a clip, the preview shows frame 0: the sweep's start angle.
     swept = client.predict("studio", None, 0.0, 0.0, "Relight", True, 90.0, api_name="/light_preview")
     np.testing.assert_array_equal(np.asarray(Image.open(swept)), np.asarray(Image.open(b)))
+    # A lower colour temperature makes the light, and so the balls, warmer.
+    warm = client.predict("studio", None, 0.0, 0.0, "Relight", False, 0.0, 3000.0, api_name="/light_preview")
+    red_minus_blue = [float(np.mean(image[..., 0]) - np.mean(image[..., 2]))
+                      for image in (np.asarray(Image.open(p), np.float32) for p in (a, warm))]
+    assert red_minus_blue[1] > red_minus_blue[0] + 10, red_minus_blue
 
 
-@pytest.mark.parametrize("mode", ["Albedo only", "Render from albedo"])
-def test_other_modes_and_an_uploaded_probe(studio, mode):
+@pytest.mark.parametrize("mode, relit, albedo, downloads", [
+    ("Albedo only", False, True, ["albedo.png"]),
+    ("Render from albedo", True, False, ["relit-linear.exr", "relit.png"]),
+])
+def test_other_modes_make_only_their_results(studio, mode, relit, albedo, downloads):
     client, _ = studio
     probe = handle_file(str(REPO / "envmaps" / "sunset.exr"))
-    final = run_job(client, **relight_args(REPO / "examples" / "inputs" / "objects.png", mode=mode,
-                                           probe_upload=probe))[-1]
+    updates = run_job(client, **relight_args(REPO / "examples" / "inputs" / "objects.png", mode=mode,
+                                             probe_upload=probe, temperature=3200.0))
+    final = updates[-1]
     assert "Done" in final[0]
-    assert np.asarray(Image.open(final[2])).shape == (192, 256, 3)
-    assert np.asarray(Image.open(final[3])).shape == (192, 256, 3)
+    # Output 2 is the relit image, 3 the albedo: a mode that makes no such result never shows one,
+    # not even as a step preview.
+    for index, made in ((2, relit), (3, albedo)):
+        if made:
+            assert np.asarray(Image.open(final[index])).shape == (192, 256, 3)
+        else:
+            assert all(u[index] is None for u in updates), mode
+    assert sorted(Path(p).name for p in final[9]) == downloads
+    assert (final[7] is not None) == relit  # before/after only for a mode that makes a relit image
 
 
 def test_stop_cancels_a_running_job_and_the_next_one_runs(studio):

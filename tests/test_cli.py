@@ -113,3 +113,19 @@ def test_an_output_folder_that_cannot_be_made_is_one_sentence(files, tmp_path, c
     err = capsys.readouterr().err
     assert code == 2 and "Traceback" not in err
     assert [line for line in err.splitlines() if line.startswith("error: ")] == [err.splitlines()[-1]]
+
+
+def test_light_colour_temperature(files, tmp_path, capsys, monkeypatch):
+    from relight_core import lighting
+
+    used = []  # the colour temperature each probe is adjusted with (the tiny model's output ignores light)
+    adjust = lighting.adjust_light
+    monkeypatch.setattr(lighting, "adjust_light", lambda probe, intensity, kelvin: used.append(kelvin)
+                        or adjust(probe, intensity, kelvin))
+    args = ["relight", str(files["png"]), "--probe", str(files["probe"]), *FAST]
+    assert main([*args, "--out", str(tmp_path / "neutral")]) == 0
+    assert main([*args, "--out", str(tmp_path / "warm"), "--temperature", "3000"]) == 0
+    assert used == [lighting.NEUTRAL_KELVIN, 3000.0]
+    assert main([*args, "--out", str(tmp_path / "bad"), "--temperature", "100"]) == 2
+    err = capsys.readouterr().err
+    assert "colour temperature 100" in err and "Traceback" not in err

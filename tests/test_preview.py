@@ -104,3 +104,21 @@ def test_probe_thumbnail_keeps_a_small_sun():
     assert thumb.shape == (32, 64, 3) and thumb.max() > 100
 
 
+
+
+def test_ball_rims_are_antialiased():
+    # Under uniform light a ball is one flat colour, so any pixel between it and the background lies on
+    # the rim, partly covered. An aliased render has few, in a handful of levels (EGL's 4× multisampling
+    # alone gives ~0.55 of the circumference in 3 levels); a supersampled one rings the ball with a
+    # smooth ramp.
+    balls = preview.render_balls(torch.full((16, 32, 3), 4.0), 0.0, CONFIG)
+    size = CONFIG.ball_size
+    for ball in (balls[:, :size], balls[:, size:]):
+        grey = ball.astype(np.float32).mean(axis=2)
+        background, inside = grey[1, 1], grey[size // 2, size // 2]
+        low, high = sorted((background, inside))
+        margin = 0.15 * (high - low)
+        partial = (grey > low + margin) & (grey < high - margin)
+        circumference = 2 * math.pi * (size / 2) / CONFIG.margin
+        assert partial.sum() > 0.9 * circumference, (partial.sum(), circumference)
+        assert np.unique(grey[partial]).size > 20

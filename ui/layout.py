@@ -10,7 +10,18 @@ import gradio as gr
 
 from relight_core.diffusion import SAMPLERS
 from relight_core.lighting import DEFAULT_ROTATION, NEUTRAL_KELVIN
-from ui.studio import MODE_VIEWS, MODES, RANDOM_MODE, VIDEO_SUFFIXES, Studio, probe_choices, status_html
+from ui.studio import (
+    CLEAR,
+    CLEAR_COMPARE,
+    MODE_VIEWS,
+    MODES,
+    RANDOM_MODE,
+    VIDEO_SUFFIXES,
+    RunOutputs,
+    Studio,
+    probe_choices,
+    status_html,
+)
 
 INPUT_TYPES = [".png", ".jpg", ".jpeg", ".webp", ".exr", ".mp4", ".mov", ".webm"]
 PROBE_TYPES = [".hdr", ".exr"]
@@ -33,9 +44,18 @@ CSS = """
   border: 1px solid var(--error-border-color, #fda29b); border-radius: 6px; padding: 6px 10px;
   font-weight: 600; }
 .field-note { padding: 4px 10px; font-size: 0.95em; }
-/* Every probe name in full: captions wrap instead of being cut with an ellipsis. */
-#probe-gallery .caption-label { white-space: normal; overflow: visible; text-overflow: clip;
-  overflow-wrap: anywhere; line-height: 1.15; max-width: 100%; }
+/* Inside a gr.Group, Gradio 6 draws images and galleries with a 3px text-coloured border; use a hairline. */
+#probe-panel .block { border-width: 0; }
+#probe-panel #probe-file { border-width: 1px; border-color: var(--border-color-primary); }
+/* The probe gallery: every row in sight, each 2:1 thumbnail with its full name under it (no ellipsis). */
+#probe-gallery .grid-container { grid-template-columns: repeat(var(--grid-cols), minmax(0, 1fr));
+  grid-template-rows: none; grid-auto-rows: auto; padding-top: 30px; }
+#probe-gallery .thumbnail-item { aspect-ratio: auto; height: auto; display: flex; flex-direction: column; }
+#probe-gallery .thumbnail-item > img { aspect-ratio: 2 / 1; height: auto; object-fit: cover; }
+#probe-gallery .caption-label { position: static; max-width: none; border: 0; border-radius: 0; background: none;
+  padding: 2px 4px; text-align: center; white-space: normal; overflow: visible; text-overflow: clip;
+  overflow-wrap: anywhere; line-height: 1.2; font-size: 0.85em; }
+#probe-gallery .grid-wrap { overflow-y: visible; min-height: 0; max-height: none; height: auto; }
 """
 
 THEME = gr.themes.Soft(primary_hue="orange", neutral_hue="slate")
@@ -50,7 +70,7 @@ def build_demo(studio: Studio, examples_dir: Path | None = None) -> gr.Blocks:
 
     with gr.Blocks(title="UniRelight Studio", delete_cache=(600, 3600)) as demo:
         gr.Markdown("# UniRelight Studio\nRelight an image or a video with an HDR light probe: "
-                    "upload, pick a light, press **Relight**.")
+                    "upload, choose what to make and a light, then press the orange button.")
         gr.Markdown(studio.model_notice(), elem_id="model-notice")
         with gr.Row(equal_height=False):
             # ------------------------------------------------------------------ controls
@@ -71,13 +91,13 @@ def build_demo(studio: Studio, examples_dir: Path | None = None) -> gr.Blocks:
                                        elem_id="estimate")
                 mode = gr.Radio(list(MODES), value="Relight", label="What to make", elem_id="mode")
                 num_seeds = gr.Slider(1, studio.config.max_seeds, value=4, step=1, visible=False,
-                                      label="Number of random illuminations (seeds)")
+                                      label="Number of random illuminations (seeds)", elem_id="num-seeds")
 
                 with gr.Group(elem_id="probe-panel") as probe_panel:
                     # Tall enough for every row, so the picked probe is always in sight.
                     probe_gallery = gr.Gallery(
                         probe_choices(studio.probes), label="Light probe (click to pick)", columns=4,
-                        height=_gallery_height(len(names), 4), allow_preview=False, object_fit="contain",
+                        height="auto", allow_preview=False, object_fit="cover",
                         elem_id="probe-gallery", buttons=[],
                         selected_index=names.index(default_probe) if default_probe else None)
                     # The bundled probe's name: the gallery sets it, examples and API clients too.
@@ -174,22 +194,25 @@ def build_demo(studio: Studio, examples_dir: Path | None = None) -> gr.Blocks:
 
         def probe_checked(name, upload):
             info, ok = studio.probe_status(name, upload)
-            picked = names.index(name) if not upload and name in names else None
-            return info, ok, gr.update(selected_index=picked)
+            if upload or name not in names:  # no bundled probe in use: none highlighted (the page drops a None)
+                return info, ok, gr.update(selected_index=-1)
+            return info, ok, gr.update(selected_index=names.index(name))
 
         for component in (probe_name, probe_file):
             component.change(probe_checked, [probe_name, probe_file], [probe_info, probe_ok, probe_gallery],
                              api_visibility="private").then(_run_button, run_button_inputs, run, queue=False,
                                                             api_visibility="private")
-        preview_inputs = [probe_name, probe_file, rotation, exposure, mode, rotate_light, sweep_start, temperature]
+        page_preview_inputs = [probe_name, probe_file, rotation, exposure, rotate_light, sweep_start, temperature]
         # Renders follow the slider while it moves; "always_last" drops stale positions. A probe that
         # cannot be used shows no preview here: probe_info says why.
-        for component in (rotation, probe_name, probe_file, exposure, temperature, mode, rotate_light, sweep_start):
-            component.change(studio.light_preview_quiet, preview_inputs, light_preview, trigger_mode="always_last",
-                             concurrency_limit=2, concurrency_id="preview", api_visibility="private")
-        api_preview.click(studio.light_preview, preview_inputs, light_preview, concurrency_id="preview",
-                          api_name="light_preview")
-        demo.load(studio.light_preview_quiet, preview_inputs, light_preview, api_visibility="private")
+        for component in (rotation, probe_name, probe_file, exposure, temperature, rotate_light, sweep_start):
+            component.change(studio.light_preview_quiet, page_preview_inputs, light_preview,
+                             trigger_mode="always_last", concurrency_limit=2, concurrency_id="preview",
+                             api_visibility="private")
+        api_preview.click(studio.light_preview,
+                          [probe_name, probe_file, rotation, exposure, mode, rotate_light, sweep_start, temperature],
+                          light_preview, concurrency_id="preview", api_name="light_preview")
+        demo.load(studio.light_preview_quiet, page_preview_inputs, light_preview, api_visibility="private")
 
         run_outputs = [status, out_input, out_relit, out_albedo, vid_input, vid_relit, vid_albedo, compare,
                        seeds_gallery, downloads]
@@ -198,6 +221,9 @@ def build_demo(studio: Studio, examples_dir: Path | None = None) -> gr.Blocks:
             [input_file, mode, probe_name, probe_file, rotation, exposure, rotate_light, sweep_start, sweep_end,
              num_seeds, frame_start, frame_end, size, steps, sampler, seed, guidance, model, temperature],
             run_outputs, api_name="relight", show_progress="hidden", concurrency_id="model")
+        # A mode the user picks starts a new job: results made in another mode would sit under the wrong
+        # labels (examples set the mode too, with their own results, hence .input, not .change).
+        mode.input(_clear_results, None, run_outputs, queue=False, api_visibility="private")
         stop.click(studio.stop, None, status, cancels=[run_event], queue=False, api_name="stop")
     return demo
 
@@ -221,12 +247,6 @@ def launch_kwargs() -> dict:
     return {"theme": THEME, "css": CSS}
 
 
-def _gallery_height(count: int, columns: int) -> int:
-    """Pixels for every row of a gallery of 2:1 thumbnails with a caption under each (left column width)."""
-    rows = max(1, math.ceil(count / columns))
-    return 40 + rows * 100
-
-
 def _show_video_row(path: str | None):
     """Video results, and the light sweep across the clip, only for a video (a still has no clip)."""
     video = bool(path) and Path(path).suffix.lower() in VIDEO_SUFFIXES
@@ -243,6 +263,12 @@ def _mode_layout(mode: str):
             gr.update(visible=bool(view.relit), label=f"{view.relit or 'Relit'} video"),
             gr.update(visible=view.albedo), gr.update(visible=bool(view.compare), label=view.compare or ""),
             gr.update(visible=random))
+
+
+def _clear_results():
+    """Every result of the last run emptied (the input still stays), the status back to Ready."""
+    return RunOutputs(status=status_html(0.0, "Ready."), relit_image=CLEAR, albedo_image=CLEAR, relit_video=CLEAR,
+                      albedo_video=CLEAR, compare=CLEAR_COMPARE, seeds=CLEAR, downloads=CLEAR).values()
 
 
 def _run_button(mode: str, input_ok: bool, probe_ok: bool):

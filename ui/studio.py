@@ -57,6 +57,7 @@ MODE_VIEWS = {
     RANDOM_MODE: ModeView("Make random illuminations", False, "Relit (last seed)", True, None),
 }
 CLEAR = gr.update(value=None)  # a RunOutputs field set to this empties the component
+CLEAR_COMPARE = gr.update(value=(None, None))  # the before/after slider emptied: no before, no after
 
 
 @dataclass(frozen=True)
@@ -89,8 +90,12 @@ class RunOutputs:
     downloads: object = None                  # [file path, ...]
 
     def values(self) -> tuple:
-        """The update as a tuple in the layout's output order, gr.skip() for unchanged fields."""
-        return tuple(gr.skip() if v is None else v for v in (
+        """The update as a tuple in the layout's output order, gr.skip() for unchanged fields.
+
+        Update dicts (CLEAR, CLEAR_COMPARE) are copied: Gradio pops "value" out of the dict it is given,
+        so a shared one would clear the component once and then never again.
+        """
+        return tuple(gr.skip() if v is None else dict(v) if isinstance(v, dict) else v for v in (
             self.status, self.input_image, self.relit_image, self.albedo_image, self.input_video,
             self.relit_video, self.albedo_video, self.compare, self.seeds, self.downloads))
 
@@ -206,9 +211,8 @@ class Studio:
         try:
             *shown, info = self.input_changed(path)
         except gr.Error as exc:
-            cleared = gr.update(value=None)
             return (gr.update(value=None, visible=True), gr.update(value=None, visible=False),
-                    gr.update(visible=False), cleared, cleared, field_error(exc.message), False)
+                    gr.update(visible=False), gr.update(value=0), gr.update(value=0), field_error(exc.message), False)
         return (*shown, field_note(info) if info else "", True)
 
     def estimate(self, path: str | None, mode: str, frame_start: float, frame_end: float, size: int,
@@ -286,11 +290,14 @@ class Studio:
         return preview.render_preview(probe, float(rotation), intensity=2.0 ** float(exposure),
                                       temperature=temperature)
 
-    def light_preview_quiet(self, *args):
-        """`light_preview` for the page: a probe that cannot be used shows no preview; the line under the
-        probe controls (`probe_status`) says why, so no second message appears."""
+    def light_preview_quiet(self, name: str | None, upload: str | None, rotation: float, exposure: float,
+                            rotate_light: bool, sweep_start: float, temperature: float):
+        """`light_preview` for the page, where the panel is hidden in modes without a probe (so the mode
+        does not matter): a probe that cannot be used shows no preview, and the line under the probe
+        controls (`probe_status`) says why, so no second message appears."""
         try:
-            return self.light_preview(*args)
+            return self.light_preview(name, upload, rotation, exposure, "Relight", rotate_light, sweep_start,
+                                      temperature)
         except gr.Error:
             return None
 
@@ -353,7 +360,7 @@ class Studio:
         input_clip = self._save(job, "input", shown, loaded.fps, audio, True) if is_video else None
         yield RunOutputs(status=status_html(0.0, "Starting…"), input_image=input_still, input_video=input_clip,
                          relit_image=CLEAR, albedo_image=CLEAR, relit_video=CLEAR, albedo_video=CLEAR,
-                         compare=CLEAR, downloads=CLEAR, seeds=[] if mode == "random" else None).values()
+                         compare=CLEAR_COMPARE, downloads=CLEAR, seeds=[] if mode == "random" else None).values()
 
         gallery: list[tuple[str, str]] = []
         downloads: list[str] = []
@@ -361,8 +368,8 @@ class Studio:
             request = RelightRequest(
                 frames=frames, fps=loaded.fps, audio_path=loaded.audio_path, mode=mode, probe=probe,
                 rotation=rotation, rotate_light=rotate_light, sweep=sweep, intensity=intensity,
-                temperature=temperature, albedo=frames if mode == "render" else None, steps=steps, sampler=sampler, seed=run_seed,
-                guidance=guidance, should_stop=stop.is_set)
+                temperature=temperature, albedo=frames if mode == "render" else None, steps=steps,
+                sampler=sampler, seed=run_seed, guidance=guidance, should_stop=stop.is_set)
             relit_so_far = np.zeros((0, *frames.shape[1:]), np.float32)  # finished chunks, stitched
             result = None
             for event in relighter.run(request):
@@ -425,7 +432,7 @@ class Studio:
             relit_image=out.get("relit_still"), albedo_image=out.get("albedo_still"),
             relit_video=out.get("relit_video"), albedo_video=out.get("albedo_video"),
             # Always set, so an earlier example's or run's before/after never stays on screen.
-            compare=CLEAR if video else (str(root / entry["input"]), out["relit_still"]),
+            compare=CLEAR_COMPARE if video else (str(root / entry["input"]), out["relit_still"]),
             seeds=CLEAR,
             downloads=[v for k, v in out.items() if k in entry.get("downloads", [])],
         ).values()
@@ -549,5 +556,6 @@ def _duration(seconds: float) -> str:
 
 
 def probe_choices(library: ProbeLibrary) -> list[tuple[str, str]]:
-    """(thumbnail, name) items of the probe gallery."""
-    return [(str(e.thumbnail), e.name) for e in library.entries]
+    """(thumbnail, name) items of the probe gallery; a long name may wrap after its underscores
+    (a zero-width space follows each), so every name is shown in full."""
+    return [(str(e.thumbnail), e.name.replace("_", "_\u200b")) for e in library.entries]

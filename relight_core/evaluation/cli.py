@@ -47,6 +47,8 @@ def add_evaluation_commands(subparsers) -> None:
     p.add_argument("--limit", type=positive_int, default=None, help="only the first K items of the split")
     p.add_argument("--train-items", type=_count, default=4, help="train-split items for train-set reproduction")
     p.add_argument("--sigma-items", type=_count, default=2, help="items per split for the per-σ denoiser error")
+    p.add_argument("--sigma-steps", type=positive_int, default=None,
+                   help="steps of the Karras σ schedule it sweeps (default: --steps, at least 20)")
     p.add_argument("--steps-list", type=_steps_list, default=(), metavar="N,N,...",
                    help="also sample with these step counts, e.g. 5,10,20,35 (steps-vs-quality table)")
     p.add_argument("--eval-size", type=positive_int, default=None,
@@ -67,7 +69,8 @@ def _evaluate(args) -> int:
     out = args.out or Path("evaluations") / f"{Path(str(args.model)).name}-{args.split}"
     config = EvalConfig(
         data=args.data, out=out, split=args.split, model=args.model, limit=args.limit,
-        train_items=args.train_items, sigma_items=args.sigma_items, steps_list=args.steps_list,
+        train_items=args.train_items, sigma_items=args.sigma_items, sigma_steps=args.sigma_steps,
+        steps_list=args.steps_list,
         eval_size=args.eval_size, margin=not args.no_margin, grids=not args.no_grids, device=args.device,
         precision=args.precision,
         run=RunOptions(steps=args.steps, sampler=args.sampler, guidance=args.guidance, seed=args.seed),

@@ -258,7 +258,11 @@ def measure_full_resolution(relighter: Relighter, native: EvalItem, size: int, o
     from relight_core.upsample import guided_ratio_upsample, plain_upsample
 
     full = resized(native, size, multiple=1)
-    small = media.resize_frames(full.input, relighter.spec.size, multiple=relighter.frame_multiple)
+
+    def model_size(frames: np.ndarray) -> np.ndarray:
+        return media.resize_frames(frames, relighter.spec.size, multiple=relighter.frame_multiple)
+
+    small = model_size(full.input)
     if reuse is not None and reuse[0].shape == small.shape and np.array_equal(reuse[0], small):
         predicted = reuse[1]
     else:
@@ -270,8 +274,7 @@ def measure_full_resolution(relighter: Relighter, native: EvalItem, size: int, o
                "floor": {k: protocol_metrics(full.input, truth, full.mask) for k, truth in truths.items()}}
     outputs = {"input": full.input, "target": full.target}
     for source, smalls in (("model", predicted),
-                           ("oracle", {k: media.resize_frames(truth, relighter.spec.size, multiple=relighter.frame_multiple)
-                                       for k, truth in truths.items()})):
+                           ("oracle", {k: model_size(truth) for k, truth in truths.items()})):
         metrics[source] = {}
         for key, truth in truths.items():
             plain = plain_upsample(smalls[key], H, W)

@@ -94,14 +94,16 @@ def markdown(results: dict) -> str:
     lines += _quality_table(train) if train["items"] else [f"Not measured: {train.get('note')}."]
     if results.get("steps"):
         lines += ["", "## Steps vs quality (test items)", "",
-                  "| steps | relit PSNR | relit SSIM | albedo PSNR | albedo SSIM | s / item |", "|---|---|---|---|---|---|"]
+                  "| steps | relit PSNR | relit SSIM | albedo PSNR | albedo SSIM | s / item |",
+                  "|---|---|---|---|---|---|"]
         lines += [f"| {r['steps']} | {_pair(r['relit'])} | {_pair(r['albedo'])} | {r['seconds_per_item']:.1f} |"
                   for r in results["steps"]]
     sigma = results.get("sigma", {})
     if sigma.get("test", {}).get("rows"):
         train_rows = sigma.get("train", {}).get("rows") or []
         lines += ["", f"## Denoiser error per σ ({sigma['test']['items']} test, "
-                      f"{sigma.get('train', {}).get('items', 0)} train items, first chunk)", "",
+                      f"{sigma.get('train', {}).get('items', 0)} train items, first chunk, "
+                      f"{sigma['test']['steps']}-step schedule)", "",
                   "One denoiser call on the clean latents noised to σ, decoded; protocol PSNR of its x0 "
                   "(relit, albedo) and the relit latent MSE; 'no light' zeroes the lighting.", "",
                   "| σ | test relit PSNR | no light | train relit PSNR | no light | test albedo PSNR | "
@@ -134,6 +136,8 @@ def markdown(results: dict) -> str:
         lines.append(f"| {r['name']}{split} | {r['model']['relit']['psnr']:.2f} | {r['floor']['relit']['psnr']:.2f} | "
                      f"{r['ceiling']['relit']['psnr']:.2f} | {margin} | {r['model']['albedo']['psnr']:.2f} | "
                      f"{r['floor']['albedo']['psnr']:.2f} | {r['ceiling']['albedo']['psnr']:.2f} |")
+    grids = ["`grids/test_*.png`"] + (["`grids/train_*.png`"] if train["items"] else []) + \
+        (["full resolution (input | target | plain | guided): `grids/full_*.png`"] if full else [])
     lines += ["", "Grids (input | target | relit | albedo target | albedo; rows: first, middle, last frame): "
-              "`grids/test_*.png`, `grids/train_*.png`" + (", full resolution: `grids/full_*.png`" if full else "") + "."]
+              + ", ".join(grids) + "."]
     return "\n".join(lines) + "\n"

@@ -39,6 +39,7 @@ class EvalConfig:
     limit: int | None = None            # first K items of the split (None: all)
     train_items: int = 4                # train-split items for train-set reproduction (0: none)
     sigma_items: int = 2                # items per split for the per-σ denoiser error (0: none)
+    sigma_steps: int | None = None      # its σ schedule's steps (None: the run's steps, at least 20)
     steps_list: tuple[int, ...] = ()    # extra sampling-step counts for the steps-vs-quality table
     eval_size: int | None = None        # also measure full-resolution output at this long side
     margin: bool = True                 # the probe-following margin (one more model run per item)
@@ -135,21 +136,23 @@ def run_evaluation(config: EvalConfig, log: Callable[[str], None] = _log) -> dic
                 rows.append({"model": {"relit": protocol_metrics(relit, item.target, item.mask),
                                        "albedo": protocol_metrics(albedo, item.albedo, item.mask)},
                              "seconds": seconds})
-        steps_rows.append({"steps": steps, **mean_metrics(rows, "model"), "seconds_per_item": mean_metrics(rows, "seconds")})
+        steps_rows.append({"steps": steps, **mean_metrics(rows, "model"),
+                           "seconds_per_item": mean_metrics(rows, "seconds")})
         log(f"  steps {steps}: relit {steps_rows[-1]['relit']['psnr']:.2f} dB, albedo "
             f"{steps_rows[-1]['albedo']['psnr']:.2f} dB, {steps_rows[-1]['seconds_per_item']:.1f} s/item")
     results["steps"] = steps_rows
 
     sigma = {}
+    sweep = replace(options, steps=config.sigma_steps or max(options.steps, 20))
     for split_name, items in (("test", test), ("train", train)):
         chosen = items[:config.sigma_items]
-        with_light = [sigma_errors(relighter, item, options, lighting=True) for item in chosen]
-        without = [sigma_errors(relighter, item, options, lighting=False) for item in chosen]
+        with_light = [sigma_errors(relighter, item, sweep, lighting=True) for item in chosen]
+        without = [sigma_errors(relighter, item, sweep, lighting=False) for item in chosen]
         rows = _mean_sigma(with_light)
         for row, dark in zip(rows, _mean_sigma(without)):
             row["relit_psnr_no_light"] = dark["relit_psnr"]
             row["relit_latent_mse_no_light"] = dark["relit_latent_mse"]
-        sigma[split_name] = {"items": len(chosen), "rows": rows}
+        sigma[split_name] = {"items": len(chosen), "steps": sweep.steps, "rows": rows}
         if chosen:
             log(f"  σ sweep on {len(chosen)} {split_name} items done")
     results["sigma"] = sigma

@@ -39,6 +39,7 @@ from relight_core.lighting.probe import (
     rgb_to_srgb,
     tonemap_display,
 )
+from relight_core.lighting.camera import MAX_PITCH_DEG, MAX_ROLL_DEG, camera_rotation
 from relight_core.lighting.temperature import (
     MAX_KELVIN,
     MIN_KELVIN,
@@ -84,6 +85,9 @@ __all__ = [
     "uv_to_direction",
     "yaw_matrix",
     "MAX_KELVIN",
+    "MAX_PITCH_DEG",
+    "MAX_ROLL_DEG",
+    "camera_rotation",
     "MIN_KELVIN",
     "NEUTRAL_KELVIN",
     "adjust_light",

@@ -18,6 +18,7 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 from relight_core.errors import InputError  # noqa: E402
+from relight_core.stderr import quiet_about  # noqa: E402
 
 if _OPENCV_QUIET:  # e.g. "[ERROR:0@0.4] global loadsave.cpp ..." before our message for a truncated .hdr
     cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
@@ -157,7 +158,8 @@ def load_probe(path, intensity: float = 1.0) -> torch.Tensor:
     with open(path, "rb") as f:
         magic = f.read(4)
     if magic == _EXR_MAGIC:
-        pixels = _read_exr(path)
+        with quiet_about(path):  # OpenEXR prints its own line about a damaged file; ours says it
+            pixels = _read_exr(path)
     elif magic.startswith(_RADIANCE_MAGIC):
         pixels = _read_radiance(path)
     else:
