@@ -48,6 +48,7 @@ class ModelSpec:
     precision: str = "auto"              # compute precision: auto | fp32 | bf16 | fp16 (precision.py)
     trained: bool = True                 # False for a preset with random weights
     lighting_size: int | None = None     # probes seen through a size² panorama (lighting.lowpass_panorama)
+    residual: bool = False               # relit/albedo diffused as offsets from the input (ConditionedDenoiser)
     notes: dict = field(default_factory=dict)
 
     def to_json(self) -> dict:

@@ -116,6 +116,10 @@ def _add_probe_args(p: argparse.ArgumentParser, required: bool) -> None:
     p.add_argument("--temperature", type=float, default=None, metavar="KELVIN",
                    help="the light's colour temperature: 6500 is neutral (the default), lower warmer, higher "
                         "cooler (1700 to 25000)")
+    p.add_argument("--camera-pitch", type=float, default=0.0, metavar="DEGREES",
+                   help="how far the camera looks up (+) or down (-) from level, -90 to 90")
+    p.add_argument("--camera-roll", type=float, default=0.0, metavar="DEGREES",
+                   help="how far the camera is turned counter-clockwise (+) about its view, -180 to 180")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -223,6 +227,9 @@ def _run_media_command(args) -> int:
         base["rotate_light"] = True
     if getattr(args, "temperature", None) is not None:
         base["temperature"] = lighting.check_temperature(args.temperature)  # out of range: one sentence
+    if getattr(args, "camera_pitch", 0.0) or getattr(args, "camera_roll", 0.0):
+        lighting.camera_rotation(args.camera_pitch, args.camera_roll)  # out of range: one sentence
+        base["camera_pitch"], base["camera_roll"] = args.camera_pitch, args.camera_roll
 
     if args.command == "relight":
         jobs = [("", RelightRequest(frames, mode="relight", probe=probe, seed=args.seed, **base))]

@@ -187,6 +187,9 @@ SAMPLERS: dict[str, Callable[..., torch.Tensor]] = {
 #                 Denoiser wrappers: condition clips and guidance               #
 #################################################################################
 
+RESIDUAL_CLIPS = 3  # [input | relit | albedo] along time, as in the joint DiT
+
+
 class ConditionedDenoiser:
     """Feeds the given clips as clean latents and pastes them into every x0 (released inference).
 
@@ -203,8 +206,10 @@ class ConditionedDenoiser:
                  condition_mask: torch.Tensor,      # [B,1,T,1,1], 1 on condition frames
                  augment_sigma: float = 0.001,      # released condition_video_augment_sigma_in_inference
                  sigma_data: float = 0.5,
-                 seed: int = 1):
+                 seed: int = 1,
+                 residual: bool = False):           # relit/albedo diffused as offsets from the input
         self.denoiser = denoiser
+        self.residual = residual
         self.condition_latent = condition_latent
         self.condition_mask = condition_mask
         self.augment_sigma = augment_sigma
@@ -219,8 +224,24 @@ class ConditionedDenoiser:
         c_in = append_dims(edm_scalings(sigma, self.sigma_data)[2], x.ndim)           # (B, 1, 1, 1, 1)
         c_in_augment = edm_scalings(torch.tensor(self.augment_sigma), self.sigma_data)[2]
         x_cond = self.augmented.to(x.dtype) * (c_in_augment / c_in)
+        base = self.residual_base(x.dtype) if self.residual else None
+        if base is not None:
+            x = x - base
         x0 = self.denoiser(torch.where(given, x_cond, x), sigma, condition_mask=self.condition_mask, **extra)
+        if base is not None:
+            x0 = x0 + base
         return torch.where(given, self.condition_latent.to(x0.dtype), x0)
+
+    def residual_base(self, dtype: torch.dtype) -> torch.Tensor:
+        """[input | input | input] on the frames to generate, 0 elsewhere: a residual model diffuses
+        relit − input and albedo − input (EDM on the offset), so "copy the input" is its zero output
+        and the input's detail is kept exactly; the input clip itself is always a condition."""
+        frames = self.condition_latent.shape[2]
+        if frames % RESIDUAL_CLIPS:
+            raise ValueError(f"{frames} latent frames do not split into {RESIDUAL_CLIPS} clips")
+        source = self.condition_latent[:, :, :frames // RESIDUAL_CLIPS]                 # (B, C, t, h, w)
+        base = source.repeat(1, 1, RESIDUAL_CLIPS, 1, 1).to(dtype)                       # (B, C, 3t, h, w)
+        return base * (1 - self.condition_mask.to(dtype))
 
 
 def guided(denoiser: Denoiser, cond_args: dict, uncond_args: dict, guidance: float) -> Denoiser:

@@ -281,7 +281,7 @@ class Relighter:
             cond_args = {"lighting": lighting_latents}
             uncond_args = {"lighting": torch.zeros_like(lighting_latents)}
             denoiser = ConditionedDenoiser(guided(self.denoiser, cond_args, uncond_args, request.guidance),
-                                           condition, mask)
+                                           condition, mask, residual=self.spec.residual)
             sampler = SAMPLERS[sampler_name]
 
             def work(emit, _index=index, _t=t, _denoiser=denoiser, _noise=noise):

@@ -68,3 +68,24 @@ def make_sun_probe(path: Path, width: int = 64, height: int = 32) -> Path:
     env[height // 2:] = [0.2, 0.18, 0.15]
     env[height // 4, width // 4] = [800.0, 760.0, 700.0]
     return write_exr(path, env)
+
+
+def record_encoded_lighting(monkeypatch) -> list:
+    """The camera-frame panoramas the pipeline hands `lighting.encode_lighting`, in call order."""
+    from relight_core import lighting
+
+    seen = []
+    encode = lighting.encode_lighting
+    monkeypatch.setattr(lighting, "encode_lighting", lambda env: seen.append(env.clone()) or encode(env))
+    return seen
+
+
+def lighting_the_preview_shows(relighter, light, like, *view):
+    """The preview's camera-frame lookup of `light` (rotation[, camera]) on the grid of the encoded
+    panorama `like`, seen through the model's lighting grid: what the model must be given."""
+    from relight_core import lighting, preview
+
+    height, width = like.shape[1:3]
+    directions = lighting.panorama_directions(height, width).reshape(-1, 3)
+    shown = preview.camera_radiance(light, directions, *view)
+    return lighting.lowpass_panorama(shown.reshape(1, height, width, 3), relighter.spec.lighting_size)

@@ -131,10 +131,11 @@ def test_upload_pick_rotate_run(browser, app_url, tmp_path):
     page.wait_for_function(
         "(old) => { const img = document.querySelector('#light-preview img'); return img && img.src !== old; }",
         arg=before)
-    # Warm the light, then back to neutral: the preview follows each time.
-    for kelvin in ("3000", "6500"):
+    # Warm the light and back to neutral, tilt the camera up and level it: the preview follows each time.
+    for control, value in (("temperature", "3000"), ("temperature", "6500"), ("camera-pitch", "20"),
+                           ("camera-pitch", "0")):
         before = image_src(page, "light-preview")
-        page.locator("#temperature input[type=range]").fill(kelvin)
+        page.locator(f"#{control} input[type=range]").fill(value)
         page.wait_for_function(
             "(old) => { const img = document.querySelector('#light-preview img'); return img && img.src !== old; }",
             arg=before)

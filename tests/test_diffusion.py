@@ -244,6 +244,33 @@ def test_conditioned_denoiser_feeds_almost_clean_condition_at_any_sigma():
         assert torch.equal(x_in[:, :, 2:], x[:, :, 2:])       # generated clips untouched
 
 
+def test_residual_denoiser_with_a_zero_network_copies_the_input_into_relit_and_albedo():
+    condition, mask = _conditioned_setup()
+    den = ConditionedDenoiser(EDMPrecond(lambda x, c_noise, **_: torch.zeros_like(x)), condition, mask, residual=True)
+    out = sample_res2ab(den, 80.0 * torch.randn(1, 16, 6, 2, 2), get_sigmas_karras(1))
+    for clip in (slice(2, 4), slice(4, 6)):                   # relit and albedo = the input clip
+        torch.testing.assert_close(out[:, :, clip], condition[:, :, :2], atol=0.05, rtol=0)  # c_skip·noise
+    assert torch.equal(out[:, :, :2], condition[:, :, :2])
+    plain = ConditionedDenoiser(EDMPrecond(lambda x, c_noise, **_: torch.zeros_like(x)), condition, mask)
+    out = sample_res2ab(plain, 80.0 * torch.randn(1, 16, 6, 2, 2), get_sigmas_karras(1))
+    assert out[:, :, 2:].abs().max() < 0.05                   # a plain model's zero output is zero
+
+
+def test_residual_denoiser_sees_the_offset_and_adds_the_input_back():
+    condition, mask = _conditioned_setup()
+    mask[:, :, 4] = 1.0                                       # first albedo frame given: no offset there
+    condition[:, :, 4] = 3.0
+    inner = Counting(lambda x, sigma, **_: x)                 # returns what it was handed
+    den = ConditionedDenoiser(inner, condition, mask, residual=True)
+    x = torch.randn(1, 16, 6, 2, 2)
+    out = den(x, torch.tensor([1.0]))
+    seen = inner.calls[-1][0]
+    torch.testing.assert_close(seen[:, :, 2:4], x[:, :, 2:4] - condition[:, :, :2])
+    torch.testing.assert_close(seen[:, :, 5], x[:, :, 5] - condition[:, :, 1])
+    torch.testing.assert_close(out[:, :, 2:4], x[:, :, 2:4])   # offset in, offset + input out
+    assert torch.equal(out[:, :, 4], condition[:, :, 4])       # the given frame is pinned as before
+
+
 def test_tiny_joint_model_samples_end_to_end():
     from relight_core.dit import DIT_PRESETS, JointDiT, assemble_inputs
 

@@ -7,6 +7,7 @@ import torch
 from relight_core import lighting, preview
 from relight_core.errors import InputError
 from relight_core.pipeline import Relighter, RelightRequest
+from tests.factory import lighting_the_preview_shows, record_encoded_lighting
 
 
 def test_planckian_locus_matches_reference_chromaticities():
@@ -53,17 +54,12 @@ def test_the_model_gets_the_light_the_preview_shows(monkeypatch):
     of `adjust_light(probe, intensity, temperature)`, at the same rotation."""
     relighter = Relighter.load("tiny", device="cpu")
     probe = torch.rand(32, 64, 3) * 4
-    seen = []
-    encode = lighting.encode_lighting
-    monkeypatch.setattr(lighting, "encode_lighting", lambda env: seen.append(env.clone()) or encode(env))
+    seen = record_encoded_lighting(monkeypatch)
     frames = np.random.default_rng(0).random((1, 32, 48, 3), dtype=np.float32)
     relighter.relight(RelightRequest(frames=frames, probe=probe, rotation=30.0, intensity=2.0, temperature=3200,
                                      steps=1, sampler="euler"))
     assert seen, "the pipeline encoded no lighting"
-    height, width = seen[0].shape[1:3]
-    directions = lighting.panorama_directions(height, width).reshape(-1, 3)
-    shown = preview.camera_radiance(lighting.adjust_light(probe, 2.0, 3200), directions, 30.0)
-    expected = lighting.lowpass_panorama(shown.reshape(1, height, width, 3), relighter.spec.lighting_size)
+    expected = lighting_the_preview_shows(relighter, lighting.adjust_light(probe, 2.0, 3200), seen[0], 30.0)
     torch.testing.assert_close(seen[0], expected, rtol=1e-4, atol=1e-5)
     # ...and the colour really reached it: a neutral run encodes other light.
     seen.clear()

@@ -107,23 +107,28 @@ def start(options: ServerOptions, block: bool = True):
     auth = None
     if options.auth is not None:
         auth = LoginGuard({options.auth[0]: options.auth[1]}).check  # failures are logged as warnings
-    _, local_url, share_url = demo.launch(
-        server_name=options.host, server_port=options.port, share=share, auth=auth,
-        inbrowser=options.inbrowser, max_file_size=f"{options.max_upload_mb}mb",
-        allowed_paths=[str(studio.work_dir.resolve()), str(options.examples_dir)], prevent_thread_lock=True,
-        app_kwargs={"middleware": [Middleware(FileHeaders), Middleware(ClientAddress)]},
-        show_error=True, footer_links=["api", "settings"], quiet=True, **launch_kwargs())
     demo.studio_root = root  # the studio's own temp folder (tests and shutdown use it)
-    print(f"* UniRelight Studio is running at {local_url} (model: {options.model}, "
-          f"{studio.relighter().precision}; Ctrl+C to stop)", flush=True)
-    if share and share_url is None:
-        print("* The share link could not be created; the studio keeps serving locally.", flush=True)
-    if share_url:
-        print(f"* Public share link for reviewers: {share_url}", flush=True)
-    if block:
-        try:
+    local_url = share_url = None
+    try:  # a SIGTERM/Ctrl+C from the moment the server may answer is a normal stop (exit 0)
+        _, local_url, share_url = demo.launch(
+            server_name=options.host, server_port=options.port, share=share, auth=auth,
+            inbrowser=options.inbrowser, max_file_size=f"{options.max_upload_mb}mb",
+            allowed_paths=[str(studio.work_dir.resolve()), str(options.examples_dir)], prevent_thread_lock=True,
+            app_kwargs={"middleware": [Middleware(FileHeaders), Middleware(ClientAddress)]},
+            show_error=True, footer_links=["api", "settings"], quiet=True, **launch_kwargs())
+        print(f"* UniRelight Studio is running at {local_url} (model: {options.model}, "
+              f"{studio.relighter().precision}; Ctrl+C to stop)", flush=True)
+        if share and share_url is None:
+            print("* The share link could not be created; the studio keeps serving locally.", flush=True)
+        if share_url:
+            print(f"* Public share link for reviewers: {share_url}", flush=True)
+        if block:
             demo.block_thread()  # returns on Ctrl+C, and on SIGTERM through _terminate
-        finally:
+    except KeyboardInterrupt:
+        if not block:
+            raise
+    finally:
+        if block:
             shutdown(demo)
     return demo, local_url, share_url
 

@@ -69,6 +69,9 @@ class FastConfig:
     model_dir: Path | None = None        # the model folder (default <out>/model)
     export_every_minutes: float = 2.0    # shards + config.json of the EMA so far, in <out>
     compile: bool = False                # torch.compile the DiT for training (falls back to eager)
+    zero_head: bool = False              # zero the output layer after --init (a new parameterisation)
+    export_steps: int = 1                # the exported model's default sampling steps
+    checkpoint_every_minutes: float = 5.0  # <out>/checkpoint.pt (weights, EMA, optimizer, RNG): exact resume
     recipe: Recipe = field(default_factory=Recipe)
 
 
@@ -107,14 +110,15 @@ def make_batch(pack: dict, tokenizer: PixelTokenizer, indices: torch.Tensor, tar
 
 
 @torch.no_grad()
-def sample_relight(dit: JointDiT, batch: dict, steps: int, seed: int = 0, autocast: bool = True) -> torch.Tensor:
+def sample_relight(dit: JointDiT, batch: dict, steps: int, seed: int = 0, autocast: bool = True,
+                   residual: bool = False) -> torch.Tensor:
     """Default-mode sampling (input → relit + albedo) as `Relighter` runs it; x0 [B,C,3,h,w]."""
     inp = batch["input"]
     b, _, t = inp.shape[:3]
     condition = torch.cat([inp, torch.zeros_like(inp), torch.zeros_like(inp)], dim=2)
     mask = torch.zeros(b, 1, 3 * t, 1, 1, device=inp.device)
     mask[:, :, :t] = 1.0
-    denoiser = ConditionedDenoiser(EDMPrecond(partial(network, dit)), condition, mask, seed=seed)
+    denoiser = ConditionedDenoiser(EDMPrecond(partial(network, dit)), condition, mask, seed=seed, residual=residual)
     generator = torch.Generator(device=inp.device).manual_seed(seed)
     noise = torch.randn(condition.shape, generator=generator, device=inp.device)
     sigmas = get_sigmas_karras(steps).to(inp.device)
@@ -131,7 +135,7 @@ def psnr(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
 
 @torch.no_grad()
 def sampled_quality(dit: JointDiT, pack: dict, tokenizer: PixelTokenizer, items: int, steps: int,
-                    autocast: bool) -> dict[str, float]:
+                    autocast: bool, residual: bool = False) -> dict[str, float]:
     """Mean PSNR of sampled relit/albedo on the first items (light 1 → 0), the input-copy floor and the
     probe-following margin (PSNR to the target minus PSNR to the same scene under the other probe)."""
     n = min(items, len(pack["rgb"]))
@@ -142,7 +146,7 @@ def sampled_quality(dit: JointDiT, pack: dict, tokenizer: PixelTokenizer, items:
         sub = idx[start:start + 16]
         target = torch.zeros_like(sub)
         batch = make_batch(pack, tokenizer, sub, target, torch.zeros_like(sub, dtype=torch.bool))
-        x0 = sample_relight(dit, batch, steps, autocast=autocast)
+        x0 = sample_relight(dit, batch, steps, autocast=autocast, residual=residual)
         t = batch["input"].shape[2]
         relit = tokenizer.decode(x0[:, :, t:2 * t])
         albedo = tokenizer.decode(x0[:, :, 2 * t:])
@@ -159,8 +163,8 @@ def export(out: Path, dit: JointDiT, config: FastConfig, size: int, lighting_siz
     """Transport shards + config.json in `out`; with `model_dir`, also the model folder there
     (EMA DiT in bf16, pixel tokenizer spec)."""
     spec = ModelSpec(name="default-pixel", dit=dit_config(config), tokenizer={"type": "pixel", "patch": config.patch},
-                     chunk_frames=1, overlap_frames=0, size=size, steps=20, sampler="res2ab",
-                     trained=True, lighting_size=lighting_size, notes=notes)
+                     chunk_frames=1, overlap_frames=0, size=size, steps=config.export_steps, sampler="res2ab",
+                     trained=True, lighting_size=lighting_size, residual=config.recipe.residual, notes=notes)
     state = {k: v.detach().to(torch.bfloat16).cpu().contiguous() for k, v in dit.state_dict().items()}
     config_text = json.dumps(spec.to_json(), indent=2)
     (Path(out) / CONFIG_FILE).write_text(config_text)
@@ -208,6 +212,8 @@ def train(config: FastConfig) -> dict:
     dit = JointDiT(dit_config(config)).to(device)
     if config.init is not None:
         dit.load_state_dict({k: v.float() for k, v in load_file(str(Path(config.init) / DIT_FILE)).items()})
+        if config.zero_head:  # the output means something new: start from "predict zero" (copy the input)
+            torch.nn.init.zeros_(dit.final_layer.linear.weight)
     ema = EMA(dit, config.ema_decay)
     ema_model = copy.deepcopy(dit).requires_grad_(False)
     optimizer = make_optimizer(dit, config.lr, (0.9, 0.99), config.weight_decay)
@@ -217,6 +223,14 @@ def train(config: FastConfig) -> dict:
     out = Path(config.out)
     out.mkdir(parents=True, exist_ok=True)
     log = (out / "log.jsonl").open("a")
+    checkpoint_path = out / "checkpoint.pt"
+    resumed = None
+    if checkpoint_path.exists():  # exact resume: weights, EMA, optimizer, RNG, step and time used
+        resumed = torch.load(checkpoint_path, map_location=device, weights_only=True)
+        dit.load_state_dict(resumed["dit"])
+        ema.shadow = {k: v.to(device) for k, v in resumed["ema"].items()}
+        optimizer.load_state_dict(resumed["optimizer"])
+        generator.set_state(resumed["generator"].cpu())
 
     def write(**record):
         log.write(json.dumps(record) + "\n")
@@ -230,6 +244,11 @@ def train(config: FastConfig) -> dict:
     budget = config.minutes * 60
     train_started = time.time()
     step, losses = 0, []
+    if resumed is not None:
+        train_started -= float(resumed["elapsed"])
+        step = int(resumed["step"])
+        write(event="resume", step=step, elapsed=round(float(resumed["elapsed"]), 1))
+    last_checkpoint = time.time()
     n = len(pack["rgb"])
     last_export = time.time()
     notes = {"recipe": asdict(config.recipe), "batch": config.batch, "lr": config.lr}
@@ -271,14 +290,24 @@ def train(config: FastConfig) -> dict:
                 raise FloatingPointError(f"non-finite loss at step {step}; lower the learning rate")
             write(step=step, loss=round(mean, 5), lr=lr, grad_norm=round(float(grad_norm), 4),
                   seconds=round(time.time() - train_started, 1))
+        if time.time() - last_checkpoint > config.checkpoint_every_minutes * 60:
+            partial_path = checkpoint_path.with_suffix(".partial")
+            torch.save({"dit": dit.state_dict(), "ema": ema.shadow, "optimizer": optimizer.state_dict(),
+                        "generator": generator.get_state(), "step": step,
+                        "elapsed": time.time() - train_started}, partial_path)
+            partial_path.replace(checkpoint_path)
+            last_checkpoint = time.time()
         if time.time() - last_export > config.export_every_minutes * 60:
             export(out, ema.copy_to(ema_model), config, size, lighting_size, {**notes, "steps": step})
             last_export = time.time()
     train_seconds = time.time() - train_started
     ema.copy_to(ema_model).eval()
-    quality = {"train": sampled_quality(ema_model, pack, tokenizer, config.eval_items, config.eval_steps, autocast)}
+    residual = config.recipe.residual
+    quality = {"train": sampled_quality(ema_model, pack, tokenizer, config.eval_items, config.eval_steps, autocast,
+                                        residual)}
     if test is not None:
-        quality["test"] = sampled_quality(ema_model, test, tokenizer, config.eval_items, config.eval_steps, autocast)
+        quality["test"] = sampled_quality(ema_model, test, tokenizer, config.eval_items, config.eval_steps,
+                                          autocast, residual)
     summary = {"steps": step, "train_items": n, "train_seconds": round(train_seconds, 1),
                "samples_seen": step * config.batch, "device": str(device), "params": params,
                "sampled_psnr": quality,
@@ -298,9 +327,15 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--init", type=Path)
     parser.add_argument("--model-dir", type=Path)
     parser.add_argument("--compile", action="store_true")
+    parser.add_argument("--zero-head", action="store_true", help="zero the output layer after --init")
+    parser.add_argument("--residual", action="store_true",
+                        help="train relit/albedo as offsets from the input (ModelSpec.residual)")
+    parser.add_argument("--p-sigma-max", type=float, default=0.0,
+                        help="share of samples trained at σ_max, the one-step sampler's only call")
     defaults = FastConfig(pack=Path(), out=Path())
     for name in ("minutes", "device", "batch", "lr", "warmup", "ema_decay", "width", "depth", "num_heads",
-                 "seed", "log_every", "eval_items", "eval_steps", "export_every_minutes"):
+                 "seed", "log_every", "eval_items", "eval_steps", "export_every_minutes", "export_steps",
+                 "checkpoint_every_minutes"):
         value = getattr(defaults, name)
         parser.add_argument(f"--{name.replace('_', '-')}", type=type(value), default=value)
     parser.add_argument("--p-mean", type=float, default=defaults.recipe.p_mean)
@@ -309,7 +344,8 @@ def main(argv: list[str] | None = None) -> None:
                         help="loss weight of the albedo clip (the paper's 0.1)")
     args = vars(parser.parse_args(argv))
     recipe = replace(defaults.recipe, p_mean=args.pop("p_mean"), p_std=args.pop("p_std"),
-                     clip_weights=(0.0, 1.0, args.pop("albedo_weight")))
+                     clip_weights=(0.0, 1.0, args.pop("albedo_weight")), residual=args.pop("residual"),
+                     p_sigma_max=args.pop("p_sigma_max"))
     summary = train(FastConfig(**args, recipe=recipe))
     print(json.dumps(summary, indent=1))
 

@@ -23,10 +23,12 @@ from functools import partial
 
 import torch
 
-from relight_core.diffusion import ConditionedDenoiser, EDMPrecond, edm_loss, sample_training_sigma
+from relight_core.diffusion import (ConditionedDenoiser, EDMPrecond, edm_loss, get_sigmas_karras,
+                                    sample_training_sigma)
 from relight_core.dit import NUM_CLIPS, JointDiT, assemble_inputs
 
 MODES = ("default", "albedo_only", "both")
+SIGMA_MAX = float(get_sigmas_karras(1)[0])  # where every sampling run starts (80)
 
 
 @dataclass(frozen=True)
@@ -41,6 +43,8 @@ class Recipe:
     p_mean: float = 0.0                  # ln σ ~ N(p_mean, p_std²)
     p_std: float = 1.0
     augment_sigma: float = 0.001         # noise on condition clips (released inference value)
+    p_sigma_max: float = 0.0             # share trained at σ_max = 80, the one-step sampler's only call
+    residual: bool = False               # relit/albedo as offsets from the input (ModelSpec.residual)
 
 
 @dataclass
@@ -103,11 +107,15 @@ def denoising_loss(dit: JointDiT, example: Example, recipe: Recipe, generator: t
     """EDM loss of one batch: σ ~ log-normal, x = x0 + σ·n, conditions pinned; returns (loss, σ)."""
     x0 = example.x0
     device = generator.device
-    sigma = sample_training_sigma(x0.shape[0], recipe.p_mean, recipe.p_std, generator).to(x0.device)  # (B,)
+    sigma = sample_training_sigma(x0.shape[0], recipe.p_mean, recipe.p_std, generator)              # (B,)
+    if recipe.p_sigma_max > 0:
+        at_max = torch.rand(x0.shape[0], generator=generator, device=device) < recipe.p_sigma_max
+        sigma = torch.where(at_max, torch.full_like(sigma, SIGMA_MAX), sigma)
+    sigma = sigma.to(x0.device)
     noise = torch.randn(x0.shape, generator=generator, device=device).to(x0.device)          # (B, 16, 3t, h, w)
     seed = int(torch.randint(0, 2 ** 31 - 1, (1,), generator=generator, device=device))
     denoiser = ConditionedDenoiser(EDMPrecond(partial(network, dit)), x0, example.condition_mask,
-                                   augment_sigma=recipe.augment_sigma, seed=seed)
+                                   augment_sigma=recipe.augment_sigma, seed=seed, residual=recipe.residual)
     denoised = denoiser(x0 + sigma.view(-1, 1, 1, 1, 1) * noise, sigma, lighting=example.lighting)
     loss = edm_loss(denoised, x0, sigma, recipe.clip_weights, condition_mask=example.condition_mask)
     return loss, sigma
