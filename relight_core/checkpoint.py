@@ -148,7 +148,7 @@ def load_model(model: str | Path = "default", device: str | torch.device = "cpu"
     spec, directory = resolve_model(model)
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(0)  # a preset's random weights are the same in every process
-        tokenizer = build_tokenizer(spec.tokenizer, directory)
+        tokenizer = build_tokenizer(spec.tokenizer, directory, device)  # the Cosmos JIT loads onto the device
         if directory is None:
             dit = JointDiT(spec.dit)
         else:

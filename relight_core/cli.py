@@ -13,46 +13,14 @@ import sys
 import tempfile
 from pathlib import Path
 
-from relight_core.arguments import (MAX_INTENSITY, MAX_ROTATION_DEG, MAX_SEED, OneLineParser, finite_float,
-                                    int_range, seed, terminate_as_interrupt)
+from relight_core.arguments import (MAX_INTENSITY, MAX_ROTATION_DEG, MAX_SEED, PRECISIONS, OneLineParser,
+                                    finite_float, int_range, row_list, seed, seed_list, terminate_as_interrupt)
 from relight_core.data.cli import add_data_commands, positive_int
 from relight_core.errors import InputError
 from relight_core.evaluation.cli import add_evaluation_commands
 from relight_core.training.cli import add_training_commands
 
 EXIT_USER_ERROR = 2
-
-
-MAX_SEEDS = 256
-
-
-def _parse_seeds(text: str) -> list[int]:
-    """"0-7" → [0..7]; "1,5,9" → [1,5,9]; "3" → [3]. Seeds are 0 … 2⁶³−1, at most 256 of them."""
-    seeds: list[int] = []
-    try:
-        for part in text.split(","):
-            part = part.strip()
-            if "-" in part[1:]:
-                lo_text, hi_text = part.rsplit("-", 1)
-                lo, hi = int(lo_text), int(hi_text)
-                if hi < lo:
-                    raise argparse.ArgumentTypeError(
-                        f"the seed range '{part}' is reversed; write the smaller seed first, e.g. {hi}-{lo}.")
-                if hi - lo + 1 > MAX_SEEDS - len(seeds):  # checked before the range is expanded
-                    raise argparse.ArgumentTypeError(
-                        f"'{text}' names more than {MAX_SEEDS} seeds; give between 1 and {MAX_SEEDS}, e.g. 0-7.")
-                seeds.extend(range(lo, hi + 1))
-            else:
-                seeds.append(int(part))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"'{text}' is not a seed list; write e.g. 0-7 or 1,5,9.") from None
-    if not seeds or len(seeds) > MAX_SEEDS:
-        raise argparse.ArgumentTypeError(f"Give between 1 and {MAX_SEEDS} seeds, e.g. 0-7.")
-    outside = [s for s in seeds if not 0 <= s <= MAX_SEED]
-    if outside:
-        raise argparse.ArgumentTypeError(f"the seed {outside[0]} is out of range; seeds are whole numbers "
-                                         f"from 0 to {MAX_SEED}.")
-    return seeds
 
 
 def _frame_range(text: str) -> tuple[int, int | None]:
@@ -73,10 +41,17 @@ def _sampler(text: str) -> str:
     return text
 
 
+def _mode(text: str) -> str:
+    """--mode: one of the pipeline's modes."""
+    from relight_core.pipeline import MODES
+
+    if text not in MODES:
+        raise argparse.ArgumentTypeError(f"'{text}' is not a mode; choose one of {', '.join(MODES)}.")
+    return text
+
+
 def _precision(text: str) -> str:
     """--precision: one of auto, fp32, bf16, fp16."""
-    from relight_core.precision import PRECISIONS
-
     if text not in PRECISIONS:
         raise argparse.ArgumentTypeError(f"'{text}' is not a precision; choose one of {', '.join(PRECISIONS)}.")
     return text
@@ -116,6 +91,8 @@ def _add_probe_args(p: argparse.ArgumentParser, required: bool) -> None:
     p.add_argument("--temperature", type=float, default=None, metavar="KELVIN",
                    help="the light's colour temperature: 6500 is neutral (the default), lower warmer, higher "
                         "cooler (1700 to 25000)")
+    p.add_argument("--tint", type=float, default=0.0, metavar="DUV",
+                   help="green (+) or magenta (-) shift of the light's colour, -0.02 to 0.02 (0: none)")
     p.add_argument("--camera-pitch", type=float, default=0.0, metavar="DEGREES",
                    help="how far the camera looks up (+) or down (-) from level, -90 to 90")
     p.add_argument("--camera-roll", type=float, default=0.0, metavar="DEGREES",
@@ -135,7 +112,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("augment", help="random illuminations, one result per seed (no probe)")
     p.add_argument("input", type=Path)
-    p.add_argument("--seeds", type=_parse_seeds, default=_parse_seeds("0-7"))
+    p.add_argument("--seeds", type=seed_list, default=seed_list("0-7"))
     _add_model_args(p)
 
     p = sub.add_parser("albedo", help="estimate the albedo of an image or video (inverse rendering)")
@@ -148,6 +125,25 @@ def build_parser() -> argparse.ArgumentParser:
     _add_probe_args(p, required=True)
     p.add_argument("--seed", type=seed, default=0, help=f"random seed, 0 to {MAX_SEED}")
     _add_model_args(p)
+
+    p = sub.add_parser("batch", help="run a CSV manifest of images and videos on Ray (this machine or a cluster)")
+    p.add_argument("manifest", type=Path, help="CSV with a header: input (required), mode, probe, rotation, "
+                                               "intensity, seeds, steps, size; an empty cell takes the flag's value")
+    p.add_argument("--mode", type=_mode, default="relight", help="relight (default), albedo, render or random")
+    _add_probe_args(p, required=False)
+    p.add_argument("--seeds", type=seed_list, default=None, help="one result per seed (default: 0; random: 0-7)")
+    _add_model_args(p)
+    p.add_argument("--ray-address", default=None, metavar="HOST:PORT",
+                   help="a running Ray cluster (see 'ray start --head'); default: a local Ray instance")
+    p.add_argument("--workers", type=positive_int, default=None,
+                   help="workers, each holding one model (default: one per GPU, else one per --cpus-per-worker CPUs)")
+    p.add_argument("--cpus-per-worker", type=positive_int, default=1,
+                   help="CPUs each worker reserves; a CPU worker runs torch on as many threads (default: 1)")
+    p.add_argument("--gpus-per-worker", type=finite_float(0.0, 64.0, low_open=True, what="GPUs per worker"),
+                   default=1.0, help="GPUs each GPU worker reserves; a fraction shares one GPU (default: 1)")
+    p.add_argument("--retry-failed", action="store_true", help="also run the rows that failed before")
+    p.add_argument("--rows", type=row_list, default=None, metavar="LIST",
+                   help="run exactly these rows (e.g. 3 or 1,4 or 2-5, counted from 1 under the header)")
 
     p = sub.add_parser("bench", help="measure DiT throughput, sampler cost and memory on this machine")
     p.add_argument("--quick", action="store_true", help="tiny preset only, fewer repeats")
@@ -181,6 +177,8 @@ def _main(argv: list[str] | None) -> int:
             from relight_core.released import import_released
             print(import_released(args.checkpoint, args.tokenizer, args.out))
             return 0
+        if args.command == "batch":
+            return _run_batch_command(args)
         if args.command in ("relight", "augment", "albedo", "render"):
             return _run_media_command(args)
         return args.func(args)
@@ -197,85 +195,75 @@ def _main(argv: list[str] | None) -> int:
         return getattr(exc, "exit_code", 130)
 
 
+def _media_job(args):
+    """The flags of relight / augment / albedo / render (or batch's defaults) as a MediaJob (jobs.py)."""
+    from relight_core.jobs import MediaJob
+
+    mode = {"augment": "random", "batch": getattr(args, "mode", None)}.get(args.command, args.command)
+    return MediaJob(mode=mode, input=getattr(args, "input", Path()),
+                    probe=getattr(args, "probe", None), rotation=getattr(args, "rotation", None),
+                    rotate_light=getattr(args, "rotate_light", False), intensity=getattr(args, "intensity", 1.0),
+                    temperature=getattr(args, "temperature", None), tint=getattr(args, "tint", 0.0),
+                    camera_pitch=getattr(args, "camera_pitch", 0.0), camera_roll=getattr(args, "camera_roll", 0.0),
+                    seeds=tuple(getattr(args, "seeds", None) or (getattr(args, "seed", 0),)), steps=args.steps,
+                    sampler=args.sampler, guidance=args.guidance, size=args.size, frames=args.frames, raw=args.raw)
+
+
 def _run_media_command(args) -> int:
     from tqdm import tqdm
 
-    from relight_core import lighting, media
-    from relight_core.pipeline import ChunkDone, Finished, Progress, Relighter, RelightRequest
-    from relight_core.upsample import guided_ratio_upsample
+    from relight_core.jobs import load_inputs, plan_job, write_job
+    from relight_core.pipeline import ChunkDone, Finished, Progress, Relighter
 
-    start, end = args.frames
-    source = media.load_media(args.input, start=start, end=end)
-    probe = None
-    if getattr(args, "probe", None) is not None:
-        probe = lighting.load_probe(args.probe, intensity=args.intensity)
+    job = _media_job(args)
+    inputs = load_inputs(job)
     relighter = Relighter.load(args.model, device=args.device, precision=args.precision)
-    size = args.size or relighter.spec.size
-    # Refuse a working size this machine cannot hold before allocating anything at that size.
-    relighter.check_memory(source.frames.shape[0], *media.target_size(*source.frames.shape[1:3], size,
-                                                                      relighter.frame_multiple),
-                           guidance=args.guidance > 0, hint="pass a smaller --size")
+    plan = plan_job(job, relighter, inputs)
     if not relighter.spec.trained:
         print(f"note: model '{relighter.spec.name}' has random weights; results will be noise.",
               file=sys.stderr)
-    frames = media.resize_frames(source.frames, size, multiple=relighter.frame_multiple)
-    base = dict(fps=source.fps, audio_path=source.audio_path, audio_start=source.audio_start, steps=args.steps,
-                sampler=args.sampler, guidance=args.guidance)
-    if getattr(args, "rotation", None) is not None:
-        base["rotation"] = args.rotation
-    if getattr(args, "rotate_light", False):
-        base["rotate_light"] = True
-    if getattr(args, "temperature", None) is not None:
-        base["temperature"] = lighting.check_temperature(args.temperature)  # out of range: one sentence
-    if getattr(args, "camera_pitch", 0.0) or getattr(args, "camera_roll", 0.0):
-        lighting.camera_rotation(args.camera_pitch, args.camera_roll)  # out of range: one sentence
-        base["camera_pitch"], base["camera_roll"] = args.camera_pitch, args.camera_roll
 
-    if args.command == "relight":
-        jobs = [("", RelightRequest(frames, mode="relight", probe=probe, seed=args.seed, **base))]
-    elif args.command == "render":
-        jobs = [("", RelightRequest(frames, mode="render", probe=probe, albedo=frames, seed=args.seed, **base))]
-    elif args.command == "albedo":
-        jobs = [("", RelightRequest(frames, mode="albedo", seed=args.seed, **base))]
-    else:
-        jobs = [(f"seed{seed:04d}_", RelightRequest(frames, mode="random", seed=seed, **base))
-                for seed in args.seeds]
+    def follow(prefix, events):
+        with tqdm(desc=f"{args.command} {prefix.rstrip('_')}".strip(), unit="step", file=sys.stderr,
+                  disable=None) as bar:
+            for event in events:
+                if isinstance(event, Progress):
+                    bar.total = event.total_steps * event.num_chunks
+                    bar.update(1)
+                elif isinstance(event, ChunkDone):
+                    bar.set_postfix(chunk=f"{event.chunk + 1}/{event.num_chunks}")
+                elif isinstance(event, Finished):
+                    return event.result
+        raise InputError("The job was stopped before it finished.")
 
     args.out.mkdir(parents=True, exist_ok=True)
     staging = Path(tempfile.mkdtemp(prefix=".partial-", dir=args.out))
     try:
-        written = []
-        for prefix, request in jobs:
-            result = None
-            with tqdm(desc=f"{args.command} {prefix.rstrip('_')}".strip(), unit="step", file=sys.stderr,
-                      disable=None) as bar:
-                for event in relighter.run(request):
-                    if isinstance(event, Progress):
-                        bar.total = event.total_steps * event.num_chunks
-                        bar.update(1)
-                    elif isinstance(event, ChunkDone):
-                        bar.set_postfix(chunk=f"{event.chunk + 1}/{event.num_chunks}")
-                    elif isinstance(event, Finished):
-                        result = event.result
-            outputs = {"albedo": result.albedo} if args.command == "albedo" else {"relit": result.relit,
-                                                                                   "albedo": result.albedo}
-            if args.command == "augment":
-                outputs = {"relit": result.relit}
-            if not args.raw:  # the model's size → the input's, by guided ratio transfer (upsample.py)
-                outputs = {name: guided_ratio_upsample(source.frames, frames, out_frames)
-                           for name, out_frames in outputs.items()}
-            for name, out_frames in outputs.items():
-                if source.is_video:
-                    path = staging / f"{prefix}{name}.mp4"
-                    media.save_video(path, out_frames, source.fps, audio_from=source.audio_path,
-                                     audio_start=source.audio_start)
-                else:
-                    path = staging / f"{prefix}{name}.png"
-                    media.save_image(path, out_frames[0])
-                written.append(path)
+        written = write_job(job, relighter, inputs, plan, staging, follow)
         for path in written:
             os.replace(path, args.out / path.name)
             print(args.out / path.name)
     finally:
         shutil.rmtree(staging, ignore_errors=True)
+    return 0
+
+
+def _run_batch_command(args) -> int:
+    import dataclasses
+
+    from relight_core.batch import BatchOptions, run_batch
+
+    template = _media_job(args)
+    template = dataclasses.replace(template, probe=template.probe and template.probe.resolve())  # for workers
+    options = BatchOptions(address=args.ray_address, workers=args.workers, cpus_per_worker=args.cpus_per_worker,
+                           gpus_per_worker=args.gpus_per_worker, model=args.model, device=args.device,
+                           precision=args.precision, retry_failed=args.retry_failed,
+                           rows=frozenset(args.rows) if args.rows is not None else None)
+    summary = run_batch(args.manifest, args.out, template, tuple(args.seeds) if args.seeds else None, options)
+    print(summary.results)
+    print(f"{summary.done} of {summary.rows} rows done, {summary.failed} failed.", file=sys.stderr)
+    if summary.failed:
+        print(f"error: {summary.failed} row{'s' * (summary.failed != 1)} failed; their reasons are in "
+              f"{summary.results} (fix them, then run again with --retry-failed).", file=sys.stderr)
+        return 1
     return 0

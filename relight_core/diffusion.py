@@ -15,6 +15,8 @@ from typing import Callable
 import torch
 from torch import nn
 
+from relight_core.dit import NUM_CLIPS  # [input | relit | albedo] along time
+
 Denoiser = Callable[..., torch.Tensor]
 
 
@@ -187,9 +189,6 @@ SAMPLERS: dict[str, Callable[..., torch.Tensor]] = {
 #                 Denoiser wrappers: condition clips and guidance               #
 #################################################################################
 
-RESIDUAL_CLIPS = 3  # [input | relit | albedo] along time, as in the joint DiT
-
-
 class ConditionedDenoiser:
     """Feeds the given clips as clean latents and pastes them into every x0 (released inference).
 
@@ -237,10 +236,10 @@ class ConditionedDenoiser:
         relit − input and albedo − input (EDM on the offset), so "copy the input" is its zero output
         and the input's detail is kept exactly; the input clip itself is always a condition."""
         frames = self.condition_latent.shape[2]
-        if frames % RESIDUAL_CLIPS:
-            raise ValueError(f"{frames} latent frames do not split into {RESIDUAL_CLIPS} clips")
-        source = self.condition_latent[:, :, :frames // RESIDUAL_CLIPS]                 # (B, C, t, h, w)
-        base = source.repeat(1, 1, RESIDUAL_CLIPS, 1, 1).to(dtype)                       # (B, C, 3t, h, w)
+        if frames % NUM_CLIPS:
+            raise ValueError(f"{frames} latent frames do not split into {NUM_CLIPS} clips")
+        source = self.condition_latent[:, :, :frames // NUM_CLIPS]                 # (B, C, t, h, w)
+        base = source.repeat(1, 1, NUM_CLIPS, 1, 1).to(dtype)                       # (B, C, 3t, h, w)
         return base * (1 - self.condition_mask.to(dtype))
 
 

@@ -84,6 +84,17 @@ def assemble_inputs(noisy: torch.Tensor, condition_mask: torch.Tensor, lighting:
     return torch.cat([noisy, mask, light, pad], dim=1)                             # (B, 69, 3t, h, w)
 
 
+def network(dit: "JointDiT", x_in: torch.Tensor, c_noise: torch.Tensor, lighting: torch.Tensor,
+            condition_mask: torch.Tensor) -> torch.Tensor:
+    """The raw DiT on EDM-preconditioned input, the one adapter training and `Relighter` share:
+    x_in [B,C,3t,h,w], c_noise [B] or [1], lighting [B or 1,51·k,3t,h,w], condition_mask [B,1,3t,1,1]
+    are assembled into the token channels and run; returns [B,C,3t,h,w] in float32."""
+    b, _, frames, h, w = x_in.shape
+    mask = condition_mask.expand(b, 1, frames, h, w)
+    tokens = assemble_inputs(x_in, mask, lighting.expand(b, -1, -1, -1, -1), None)   # (B, 69+, 3t, h, w)
+    return dit(tokens, c_noise.expand(b)).float()                                  # (B, C, 3t, h, w)
+
+
 #################################################################################
 #                                    Config                                     #
 #################################################################################

@@ -33,12 +33,12 @@ from relight_core import lighting
 from relight_core.checkpoint import ModelSpec, load_model, resolve_model
 from relight_core.chunking import crossfade_weights, pad_to_valid, plan_chunks, stitch
 from relight_core.diffusion import SAMPLERS, ConditionedDenoiser, EDMPrecond, get_sigmas_karras, guided
-from relight_core.dit import assemble_inputs
+from relight_core.dit import LIGHTING_KEYS, NUM_CLIPS, network, pack_lighting
 from relight_core.errors import InputError
 from relight_core.precision import autocast, precision_name, resolve_precision
 
 MODES = ("relight", "albedo", "render", "random")
-CLIPS = 3  # [input | relit | albedo]
+CLIPS = NUM_CLIPS  # [input | relit | albedo]
 MAX_SEED = 2**63 - 1  # seeds are 0 … 2⁶³−1 (a signed 64-bit integer)
 
 
@@ -61,12 +61,13 @@ class RelightRequest:
     sweep: tuple[float, float] = (0.0, 360.0)
     intensity: float = 1.0
     temperature: float = lighting.NEUTRAL_KELVIN  # the light's colour temperature, K (lower = warmer)
+    tint: float = 0.0                     # green (+) / magenta (−) shift of the light, Δuv within ±0.02
     camera_pitch: float = 0.0             # degrees the camera looks up (lighting.camera_rotation)
     camera_roll: float = 0.0              # degrees the camera is turned counter-clockwise about its view
     albedo: np.ndarray | None = None      # [T,H,W,3] for mode="render"
     # Linear panoramas already in the camera frame (the dataset's env*/ files): [H,W,3] for every
     # frame or [T,H,W,3] per frame, any size (re-gridded to the frames'). Used as given, in place of
-    # probe/rotation/rotate_light/sweep; the intensity and temperature still apply to it.
+    # probe/rotation/rotate_light/sweep; the intensity, temperature and tint still apply to it.
     camera_probe: torch.Tensor | np.ndarray | None = None
     steps: int | None = None              # None: the model's default
     sampler: str | None = None            # None: the model's default
@@ -144,6 +145,7 @@ class Relighter:
         self._latent_cache: OrderedDict[str, torch.Tensor] = OrderedDict()
         self._preview_matrix: torch.Tensor | None = None
         self._flops_per_second: float | None = None  # measured on the last run
+        self._overhead_per_pixel: float | None = None  # seconds per frame pixel outside the network, measured
 
     @classmethod
     def load(cls, model: str = "default", device: str | torch.device | None = None,
@@ -179,7 +181,18 @@ class Relighter:
         t = self.tokenizer.latent_frames(min(num_frames, self.spec.chunk_frames)) if num_frames > 1 else 1
         tokens = CLIPS * t * (height // self.frame_multiple) * (width // self.frame_multiple)
         per_eval = self._seconds_per_eval_at(tokens)
-        return len(chunks) * (steps + 1) * per_eval
+        overhead = (self._overhead_per_pixel or 0.0) * num_frames * height * width  # load, light, decode
+        return len(chunks) * (steps + 1) * per_eval + overhead
+
+    def warm_up(self) -> float:
+        """Two small real runs (a grey image at the model's size up to 256 px, one step): the first pays
+        the one-off costs so that the first request does not, the second measures this machine's speed
+        for the estimates; returns their seconds."""
+        side = min(self.spec.size, 256) // self.frame_multiple * self.frame_multiple or self.frame_multiple
+        frames = np.full((1, side, side, 3), 0.5, dtype=np.float32)
+        probe = torch.ones(16, 32, 3)
+        return sum(self.relight(RelightRequest(frames, probe=probe, steps=1, rotation=angle)).seconds
+                   for angle in (0.0, 90.0))  # two rotations: the second run encodes its lighting too
 
     def memory_estimate(self, num_frames: int, height: int, width: int, guidance: bool = False
                         ) -> tuple[int, int]:
@@ -252,6 +265,7 @@ class Relighter:
         albedo_out = np.zeros_like(frames)
         previous: tuple[int, np.ndarray, np.ndarray] | None = None  # (start, relit, albedo)
         evals_done, total_evals = 0, len(chunks) * evals_per_chunk
+        network_seconds: list[float] = []  # sampler time between previews: the network's share of the run
         eval_started = time.perf_counter()
         for index, (start, length) in enumerate(chunks):
             chunk_frames = frames[start:start + length]
@@ -285,8 +299,11 @@ class Relighter:
             sampler = SAMPLERS[sampler_name]
 
             def work(emit, _index=index, _t=t, _denoiser=denoiser, _noise=noise):
+                network_started = time.perf_counter()
+
                 def callback(info):
-                    nonlocal evals_done
+                    nonlocal evals_done, network_started
+                    network_seconds.append(time.perf_counter() - network_started)  # since the last preview
                     evals_done += 1 if request.guidance == 0 else 2
                     elapsed = time.perf_counter() - eval_started
                     eta = elapsed / evals_done * (total_evals - evals_done)
@@ -295,6 +312,7 @@ class Relighter:
                     emit(Progress(step, evals_per_chunk, _index, len(chunks), relit_p, albedo_p, eta))
                     if request.should_stop is not None and request.should_stop():
                         raise _Stopped
+                    network_started = time.perf_counter()
 
                 with torch.no_grad(), self._autocast():
                     return sampler(_denoiser, _noise * sigmas[0], sigmas, callback=callback)
@@ -313,8 +331,9 @@ class Relighter:
         seconds = time.perf_counter() - started
         if evals_done:
             tokens = CLIPS * t * (height // self.frame_multiple) * (width // self.frame_multiple)
-            elapsed = time.perf_counter() - eval_started
-            self._flops_per_second = evals_done * self._flops_per_eval(tokens) / elapsed
+            network = sum(network_seconds)
+            self._flops_per_second = evals_done * self._flops_per_eval(tokens) / max(network, 1e-6)
+            self._overhead_per_pixel = max(seconds - network, 0.0) / (num_frames * height * width)
         yield Finished(RelightResult(relit_out, albedo_out, request.fps, request.audio_path, request.seed,
                                      request.mode, request.audio_start, seconds,
                                      {"chunks": len(chunks), "steps": steps, "sampler": sampler_name,
@@ -356,6 +375,7 @@ class Relighter:
         if not math.isfinite(request.intensity) or request.intensity <= 0:
             raise InputError(f"Intensity must be a positive number, not {request.intensity}.")
         lighting.check_temperature(request.temperature)
+        lighting.check_tint(request.tint)
         lighting.camera_rotation(request.camera_pitch, request.camera_roll)  # refuses absurd angles
         if isinstance(request.seed, bool) or not isinstance(request.seed, (int, np.integer)) \
                 or not 0 <= int(request.seed) <= MAX_SEED:
@@ -371,11 +391,11 @@ class Relighter:
             panoramas = torch.as_tensor(np.asarray(request.camera_probe, dtype=np.float32))
             panoramas = lighting.resize_panorama(panoramas, height, width)
             panoramas = panoramas.expand(num_frames, height, width, 3) if panoramas.dim() == 3 else panoramas
-            return lighting.adjust_light(panoramas, request.intensity, request.temperature).contiguous()
+            return lighting.adjust_light(panoramas, request.intensity, request.temperature, request.tint).contiguous()
         if request.probe is None:
             return None
         probe = torch.as_tensor(np.asarray(request.probe, dtype=np.float32))
-        return lighting.adjust_light(probe, request.intensity, request.temperature)
+        return lighting.adjust_light(probe, request.intensity, request.temperature, request.tint)
 
     # -- latents ----------------------------------------------------------------------------
 
@@ -417,11 +437,7 @@ class Relighter:
                                      for r in rotations])
         panoramas = lighting.lowpass_panorama(panoramas, self.spec.lighting_size)
         encodings = lighting.encode_lighting(panoramas)
-        parts = []
-        for name in ("env_ldr", "env_log", "env_dir"):
-            latent = self._encode_signed(encodings[name])
-            parts += [latent, torch.ones_like(latent[:, :1])]
-        latents = torch.cat(parts, dim=1)
+        latents = pack_lighting(*(self._encode_signed(encodings[name]) for name in LIGHTING_KEYS))
         self._latent_cache[key] = latents
         return latents
 
@@ -461,11 +477,8 @@ class Relighter:
 
     def _network(self, x_in: torch.Tensor, c_noise: torch.Tensor, lighting: torch.Tensor,
                  condition_mask: torch.Tensor) -> torch.Tensor:
-        """The raw DiT on preconditioned input: assemble the 69 channels and run it."""
-        b, _, frames, h, w = x_in.shape
-        mask = condition_mask.expand(b, 1, frames, h, w)
-        tokens = assemble_inputs(x_in, mask, lighting.expand(b, -1, -1, -1, -1), None)
-        return self.dit(tokens, c_noise.expand(b)).float()
+        """The raw DiT on preconditioned input (`dit.network`, as training calls it)."""
+        return network(self.dit, x_in, c_noise, lighting, condition_mask)
 
     # -- outputs ----------------------------------------------------------------------------
 

@@ -25,9 +25,9 @@ from pathlib import Path
 
 import torch
 
+from relight_core.arguments import PRECISIONS
 from relight_core.errors import InputError
 
-PRECISIONS = ("auto", "fp32", "bf16", "fp16")
 DTYPES = {"fp32": torch.float32, "bf16": torch.bfloat16, "fp16": torch.float16}
 CACHE_FILE = "precision.json"
 BF16_MARGIN = 1.2      # bf16 must beat fp32 by this factor: autocast adds casts the matmul does not see

@@ -1,10 +1,11 @@
 """Off-screen pyvista previews of a light probe: a mirror ball, a diffuse ball and the panorama.
 
-Every colour is a lookup of `camera_radiance`, the same yaw-then-sample composition that
-`lighting.probe_in_camera` uses to build the panorama the model is given, so the preview and
-the model share one rotation convention (a test pins the two together). The balls are seen by an
-orthographic camera looking down −Z (the lat-long convention's forward), so every pixel of a
-ball has the same view direction and its colour follows from its surface normal alone.
+Every colour comes from the one ball renderer in `lighting` (`mirror_radiance`, `diffuse_radiance`,
+`camera_radiance`): the look-up `lighting.probe_in_camera` makes to build the panorama the model
+is given, so the preview and the model share one rotation convention (a test pins the two
+together). pyvista only rasterises the spheres, coloured per vertex, with antialiased rims. The
+balls are seen by an orthographic camera looking down −Z (the lat-long convention's forward), so
+every pixel of a ball has the same view direction and its colour follows from its surface normal alone.
 """
 
 from __future__ import annotations
@@ -24,7 +25,6 @@ import torch
 
 from relight_core import lighting
 
-VIEW = (0.0, 0.0, 1.0)      # unit vector from a ball towards the (orthographic) camera
 FORWARD = (0.0, 0.0, -1.0)  # the camera's forward direction, marked on the panorama
 
 
@@ -35,7 +35,7 @@ class PreviewConfig:
     ball_size: int = 256          # pixels per ball; the preview is 2·ball_size wide
     mirror_resolution: int = 160  # sphere tessellation of the mirror ball (reflections are sharp)
     diffuse_resolution: int = 64  # the diffuse ball is smooth, so a coarse mesh suffices
-    irradiance_height: int = 32   # panorama rows integrated for the diffuse ball
+    irradiance_height: int = lighting.balls.IRRADIANCE_HEIGHT  # rows of the diffuse ball's irradiance map
     albedo: float = 0.8           # reflectance of the diffuse ball
     margin: float = 1.04          # half-height of the view in ball radii (a thin border)
 
@@ -43,14 +43,6 @@ class PreviewConfig:
 # ---------------------------------------------------------------------------------------------
 # Shading (pure torch; what the pyvista meshes are coloured with)
 # ---------------------------------------------------------------------------------------------
-
-def camera_radiance(probe: torch.Tensor, directions: torch.Tensor, rotation: float,
-                    camera: torch.Tensor | None = None) -> torch.Tensor:
-    """Radiance [N,3] arriving from camera-frame directions [N,3]: the lookup `probe_in_camera` makes,
-    probe(R_y(rotation)·c2w·d), with `camera` the c2w rotation of a tilted camera (None: level)."""
-    world = directions if camera is None else directions @ camera.T
-    return lighting.sample_probe(probe, world @ lighting.yaw_matrix(rotation).T)
-
 
 @functools.lru_cache(maxsize=8)
 def _texel_directions(height: int) -> torch.Tensor:
@@ -60,41 +52,7 @@ def _texel_directions(height: int) -> torch.Tensor:
 def camera_panorama(probe: torch.Tensor, rotation: float, height: int,
                     camera: torch.Tensor | None = None) -> torch.Tensor:
     """The camera-frame light in the standard lat-long layout (centre column = forward), [h,2h,3]."""
-    return camera_radiance(probe, _texel_directions(height), rotation, camera).reshape(height, 2 * height, 3)
-
-
-def reflect_view(normals: torch.Tensor) -> torch.Tensor:
-    """Mirror directions [N,3] for unit normals [N,3] seen along VIEW."""
-    view = torch.tensor(VIEW, dtype=normals.dtype)
-    return 2 * (normals @ view)[:, None] * normals - view
-
-
-def mirror_colors(probe: torch.Tensor, normals: torch.Tensor, rotation: float,
-                  camera: torch.Tensor | None = None) -> torch.Tensor:
-    """Linear radiance [N,3] a perfect mirror with these camera-frame normals shows."""
-    return camera_radiance(probe, reflect_view(normals), rotation, camera)
-
-
-def diffuse_colors(probe: torch.Tensor, normals: torch.Tensor, rotation: float, albedo: float,
-                   rows: int, camera: torch.Tensor | None = None) -> torch.Tensor:
-    """Linear radiance [N,3] of a Lambertian surface: cosine-weighted sum over a small panorama."""
-    # Area-average first so a sun smaller than a coarse texel keeps its energy.
-    pooled = _pool(probe, 4 * rows)
-    panorama = camera_panorama(pooled, rotation, rows, camera).reshape(-1, 3)         # [M,3]
-    directions = _texel_directions(rows)                                              # [M,3]
-    theta = (torch.arange(rows, dtype=torch.float32) + 0.5) / rows * math.pi
-    solid_angle = (math.pi / rows) * (math.pi / rows) * torch.sin(theta)              # [rows]
-    solid_angle = solid_angle[:, None].expand(rows, 2 * rows).reshape(-1)             # [M]
-    cosine = (normals @ directions.T).clamp(min=0)                                    # [N,M]
-    return albedo / math.pi * cosine @ (panorama * solid_angle[:, None])              # [N,3]
-
-
-def _pool(probe: torch.Tensor, height: int) -> torch.Tensor:
-    """Area-average a probe [h,w,3] down to at most [height, 2·height, 3]."""
-    if probe.shape[0] <= height:
-        return probe
-    pooled = torch.nn.functional.adaptive_avg_pool2d(probe.permute(2, 0, 1)[None], (height, 2 * height))
-    return pooled[0].permute(1, 2, 0)
+    return lighting.camera_radiance(probe, _texel_directions(height), rotation, camera).reshape(height, 2 * height, 3)
 
 
 def to_display(linear: torch.Tensor) -> np.ndarray:
@@ -191,9 +149,9 @@ def render_balls(probe: torch.Tensor, rotation: float, config: PreviewConfig = P
                  camera: torch.Tensor | None = None) -> np.ndarray:
     """Mirror ball (left) and diffuse ball (right) lit by the rotated probe, uint8 [S,2S,3]."""
     renderer = _renderer(config)
-    mirror_rgb = to_display(mirror_colors(probe, renderer.mirror_normals, rotation, camera))
-    diffuse_rgb = to_display(diffuse_colors(probe, renderer.diffuse_normals, rotation, config.albedo,
-                                            config.irradiance_height, camera))
+    mirror_rgb = to_display(lighting.mirror_radiance(probe, renderer.mirror_normals, rotation, camera))
+    diffuse_rgb = to_display(config.albedo * lighting.diffuse_radiance(probe, renderer.diffuse_normals, rotation,
+                                                                       camera, config.irradiance_height))
     return renderer.render(mirror_rgb, diffuse_rgb)
 
 
@@ -223,14 +181,14 @@ def probe_thumbnail(probe: torch.Tensor, height: int) -> np.ndarray:
 def render_preview(probe: torch.Tensor, rotation: float = lighting.DEFAULT_ROTATION,
                    intensity: float = 1.0, config: PreviewConfig = PreviewConfig(),
                    temperature: float = lighting.NEUTRAL_KELVIN, pitch: float = 0.0,
-                   roll: float = 0.0) -> np.ndarray:
+                   roll: float = 0.0, tint: float = 0.0) -> np.ndarray:
     """The light preview: balls on top, panorama below, uint8 [S + S, 2S, 3].
 
-    The probe gets its exposure and colour temperature from `lighting.adjust_light`, and the camera
+    The probe gets its exposure, colour temperature and tint from `lighting.adjust_light`, and the camera
     its tilt from `lighting.camera_rotation(pitch, roll)`, as the pipeline's request does, so the
     preview shows the light the model is given (a tilted camera moves the horizon and the balls).
     """
-    probe = lighting.adjust_light(probe, intensity, temperature)
+    probe = lighting.adjust_light(probe, intensity, temperature, tint)
     camera = lighting.camera_rotation(pitch, roll)
     balls = render_balls(probe, rotation, config, camera)
     strip = panorama_image(camera_panorama(probe, rotation, config.ball_size, camera))
@@ -244,4 +202,4 @@ def ball_pixel_direction(row: float, col: float, size: int, margin: float = Prev
     z = math.sqrt(max(0.0, 1.0 - x * x - y * y))
     normal = torch.tensor([[x, y, z]], dtype=torch.float32)
     normal = normal / normal.norm()
-    return reflect_view(normal)[0].numpy()
+    return lighting.reflect_view(normal)[0].numpy()

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import socket
 import time
 from pathlib import Path
 
@@ -14,46 +13,7 @@ from gradio_client import Client, handle_file
 from PIL import Image
 
 from relight_core import media
-
-REPO = Path(__file__).resolve().parent.parent
-UPLOAD_LIMIT_MB = 1
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def start_studio(tmp: Path, **overrides):
-    """Launch the studio in-process on the tiny model; returns (demo, local_url, share_url)."""
-    from ui.server import ServerOptions, start
-
-    options = ServerOptions(port=free_port(), model="tiny", inbrowser=False, temp_dir=tmp / "studio",
-                            max_upload_mb=UPLOAD_LIMIT_MB, examples_dir=tmp / "no-examples")
-    options = ServerOptions(**{**options.__dict__, **overrides})
-    return start(options, block=False)
-
-
-def scene_image(path: Path, size=(96, 64)) -> Path:
-    """A small real picture: smooth gradients and a few shapes, saved as PNG."""
-    w, h = size
-    yy, xx = np.mgrid[0:h, 0:w] / np.array([h, w])[:, None, None]
-    image = np.stack([0.2 + 0.6 * xx, 0.3 + 0.5 * yy, 0.5 + 0.3 * xx * yy], axis=-1)
-    image[(xx - 0.3) ** 2 + (yy - 0.5) ** 2 < 0.04] = (0.9, 0.2, 0.1)
-    image[10:30, 50:80] = (0.1, 0.4, 0.9)
-    media.save_image(path, image.astype(np.float32))
-    return path
-
-
-def relight_args(image: Path, **overrides) -> dict:
-    """Every input of the /relight endpoint, with the defaults a user gets."""
-    args = dict(path=handle_file(str(image)), mode="Relight", probe_name="studio", probe_upload=None,
-                rotation=120.0, exposure=0.0, rotate_light=False, sweep_start=0, sweep_end=360, num_seeds=1,
-                frame_start=0, frame_end=0, size=64, steps=4, sampler="euler", seed=3, guidance=0.0,
-                model="tiny")
-    args.update(overrides)
-    return args
+from tests.factory import REPO, free_port, plain, relight_args, run_job, scene_image, start_studio, write_bad_inputs
 
 
 @pytest.fixture(scope="module")
@@ -64,21 +24,6 @@ def studio(tmp_path_factory):
     yield client, tmp
     client.close()
     demo.close()
-
-
-def plain(value):
-    """A streamed output as its value; skipped or cleared outputs come back as None."""
-    if isinstance(value, dict) and value.get("__type__") == "update":
-        return value.get("value")
-    return value
-
-
-def run_job(client: Client, **args) -> list[tuple]:
-    """Submit a relight job and collect every streamed update."""
-    job = client.submit(**args, api_name="/relight")
-    updates = [tuple(plain(v) for v in update) for update in job]
-    job.result()  # re-raises a server-side error
-    return updates
 
 
 def test_relight_streams_previews_then_final_files(studio):
@@ -195,19 +140,6 @@ def test_stop_cancels_a_running_job_and_the_next_one_runs(studio):
     assert "Done" in run_job(client, **relight_args(image))[-1][0]
     assert time.monotonic() - stopped_at < 30
     assert job.done() and not any("Done" in str(plain(u[0])) for u in job.outputs())
-
-
-def write_bad_inputs(tmp: Path) -> dict[str, Path]:
-    corrupt = tmp / "corrupt.png"
-    corrupt.write_bytes(b"\x89PNG\r\n\x1a\n" + b"not really a picture" * 20)
-    fake_video = tmp / "fake.mp4"
-    fake_video.write_bytes(b"this is a text file, not a video\n" * 50)
-    nan_probe = tmp / "nan.exr"
-    pixels = np.full((16, 32, 3), np.nan, dtype=np.float32)
-    OpenEXR.File({"type": OpenEXR.scanlineimage}, {"RGB": pixels}).write(str(nan_probe))
-    big = tmp / "big.png"
-    big.write_bytes(b"\0" * (UPLOAD_LIMIT_MB * 1024 * 1024 + 1))
-    return {"corrupt": corrupt, "fake_video": fake_video, "nan_probe": nan_probe, "big": big}
 
 
 def test_bad_inputs_give_readable_errors_and_the_app_keeps_serving(studio):

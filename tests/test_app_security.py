@@ -23,7 +23,7 @@ import pytest
 from gradio_client import Client, handle_file
 
 from relight_core import media
-from tests.test_app_api import free_port, relight_args, run_job, scene_image, start_studio
+from tests.factory import free_port, relight_args, run_job, scene_image, start_studio
 
 ROOT = Path(__file__).resolve().parent.parent
 SECRET = "top secret: not written by the studio"

@@ -120,12 +120,15 @@ def test_light_colour_temperature(files, tmp_path, capsys, monkeypatch):
 
     used = []  # the colour temperature each probe is adjusted with (the tiny model's output ignores light)
     adjust = lighting.adjust_light
-    monkeypatch.setattr(lighting, "adjust_light", lambda probe, intensity, kelvin: used.append(kelvin)
-                        or adjust(probe, intensity, kelvin))
+    monkeypatch.setattr(lighting, "adjust_light", lambda probe, intensity, kelvin, tint: used.append((kelvin, tint))
+                        or adjust(probe, intensity, kelvin, tint))
     args = ["relight", str(files["png"]), "--probe", str(files["probe"]), *FAST]
     assert main([*args, "--out", str(tmp_path / "neutral")]) == 0
-    assert main([*args, "--out", str(tmp_path / "warm"), "--temperature", "3000"]) == 0
-    assert used == [lighting.NEUTRAL_KELVIN, 3000.0]
+    assert main([*args, "--out", str(tmp_path / "warm"), "--temperature", "3000", "--tint", "0.01"]) == 0
+    assert used == [(lighting.NEUTRAL_KELVIN, 0.0), (3000.0, 0.01)]
     assert main([*args, "--out", str(tmp_path / "bad"), "--temperature", "100"]) == 2
     err = capsys.readouterr().err
     assert "colour temperature 100" in err and "Traceback" not in err
+    assert main([*args, "--out", str(tmp_path / "bad"), "--tint", "0.5"]) == 2
+    err = capsys.readouterr().err
+    assert "tint" in err and "Traceback" not in err

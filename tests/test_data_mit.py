@@ -13,8 +13,8 @@ from PIL import Image
 pytest.importorskip("mitsuba")
 
 from relight_core import lighting  # noqa: E402
+from relight_core.colour import linear_to_srgb  # noqa: E402
 from relight_core.data import mit  # noqa: E402
-from relight_core.data.files import srgb_encode  # noqa: E402
 from relight_core.data.probes import ProbeChoice  # noqa: E402
 from relight_core.data.render import SceneRenderer, init_mitsuba  # noqa: E402
 from relight_core.data.scenes import CameraSpec, MaterialSpec, ObjectSpec, SceneSpec, camera_to_world  # noqa: E402
@@ -56,7 +56,7 @@ def mit_root(tmp_path_factory):
     x0 = y0 = SIZE / 2 - r_pix
     with SceneRenderer(spec, SIZE, spp=16, probes=probes) as renderer:
         for light, direction in enumerate(SUNS):
-            photo = srgb_encode(renderer.render(0, light, seed=3))
+            photo = linear_to_srgb(np.clip(renderer.render(0, light, seed=3), 0, 1))
             cv2.imwrite(str(scene / f"dir_{direction}_mip2.jpg"), (photo[..., ::-1] * 255).round().astype(np.uint8),
                         [cv2.IMWRITE_JPEG_QUALITY, 95])
             crop = photo[int(round(y0)):int(round(y0 + 2 * r_pix)), int(round(x0)):int(round(x0 + 2 * r_pix))]

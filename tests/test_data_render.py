@@ -9,7 +9,7 @@ import torch
 pytest.importorskip("mitsuba")
 
 from relight_core import lighting  # noqa: E402
-from relight_core.data.files import srgb_encode  # noqa: E402
+from relight_core.colour import linear_to_srgb  # noqa: E402
 from relight_core.data.probes import ProbeChoice  # noqa: E402
 from relight_core.data.render import SceneRenderer, init_mitsuba, to_mitsuba_bitmap  # noqa: E402
 from relight_core.data.scenes import (CameraSpec, MaterialSpec, ObjectSpec, SceneSpec,  # noqa: E402
@@ -120,6 +120,6 @@ def test_albedo_equals_base_colour_on_a_flat_unshadowed_patch():
     probe = np.ones((16, 32, 3), np.float32)
     with SceneRenderer(spec, 32, spp=4, probes=[probe, probe]) as renderer:
         albedo, mask = renderer.render_aovs(0, seed=0)
-    patch = srgb_encode(albedo[8:24, 8:24])
+    patch = linear_to_srgb(albedo[8:24, 8:24])
     np.testing.assert_allclose(patch, np.broadcast_to(base, patch.shape), atol=1.5 / 255)
     assert mask[8:24, 8:24].min() == 1.0

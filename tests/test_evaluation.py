@@ -17,8 +17,10 @@ from relight_core.dit import JointDiT, channel_layout
 from relight_core.errors import InputError
 from relight_core.evaluation import protocol_metrics, psnr, scale_fit, ssim
 from relight_core.evaluation.harness import RunOptions, load_items, measure_item, probe_margin, relight
+from relight_core.evaluation.metrics import albedo_metrics, delta_e2000
 from relight_core.pipeline import Relighter, RelightRequest
 from relight_core.tokenizer import build_tokenizer
+from tests.factory import awake
 
 SIZE = 32
 
@@ -71,6 +73,30 @@ def test_scale_fit_removes_a_colour_cast_and_clips():
     assert psnr(cast, target) < 20
     fitted, _ = scale_fit(np.full((4, 4, 3), 0.5), np.full((4, 4, 3), 3.0))
     assert fitted.max() == 1.0                          # a scaled prediction stays an image
+
+
+def test_delta_e2000_is_per_frame_on_the_mask_then_averaged():
+    target = np.zeros((2, 8, 8, 3))
+    pred = np.zeros((2, 8, 8, 3))
+    pred[0] = 1.0                                       # frame 0: white for black, ΔE2000 = 100 (L* 100 → 0)
+    pred[1, :, :4] = 1.0                                # frame 1: white on the left half only...
+    mask = np.zeros((2, 8, 8))
+    mask[0, :2] = 1.0
+    mask[1, :, 4:] = 1.0                                # ...which its mask leaves out
+    assert delta_e2000(pred, target, mask) == pytest.approx(50.0)
+    assert delta_e2000(pred, target) == pytest.approx(75.0)
+    assert delta_e2000(target, target, mask) == 0.0
+
+
+def test_albedo_metrics_add_the_colour_difference_after_the_scale_fit():
+    rng = np.random.default_rng(1)
+    albedo = rng.uniform(0.1, 0.6, (2, 16, 16, 3))
+    assert albedo_metrics(albedo * 0.5, albedo)["delta_e2000"] == pytest.approx(0.0, abs=1e-6)   # scale is free
+    tinted = albedo.copy()
+    tinted[..., 0] = albedo[..., 1]                     # a hue error no per-channel scale removes
+    metrics = albedo_metrics(tinted, albedo)
+    assert set(metrics) == {"psnr", "ssim", "delta_e2000"} and metrics["delta_e2000"] > 2
+    assert metrics["psnr"] == protocol_metrics(tinted, albedo)["psnr"]
 
 
 def test_ssim_of_constant_images_and_of_identical_ones():
@@ -154,22 +180,11 @@ def dataset(tmp_path_factory):
     return root
 
 
-def _awake(relighter: Relighter) -> Relighter:
-    """Random values for the zero-initialised (adaLN-zero) weights: an untrained DiT whose output
-    depends on its inputs, the lighting included."""
-    generator = torch.Generator().manual_seed(0)
-    with torch.no_grad():
-        for parameter in relighter.dit.parameters():
-            if not parameter.any():
-                parameter.copy_(0.05 * torch.randn(parameter.shape, generator=generator))
-    return relighter
-
-
 def _tiny(blind: bool = False) -> Relighter:
     """The tiny preset, awake; `blind` zeroes the patch-embedding weights of every lighting channel."""
     spec = MODEL_PRESETS["tiny"]
     torch.manual_seed(0)
-    relighter = _awake(Relighter(spec, JointDiT(spec.dit), build_tokenizer(spec.tokenizer), "cpu", precision="fp32"))
+    relighter = awake(Relighter(spec, JointDiT(spec.dit), build_tokenizer(spec.tokenizer), "cpu", precision="fp32"))
     if blind:
         layout = channel_layout(spec.dit.out_channels)
         lit = slice(layout["env_ldr"].start, layout["env_dir_mask"].stop)
@@ -282,18 +297,21 @@ def test_evaluate_end_to_end_on_the_tiny_preset(dataset, tmp_path, capsys):
     assert results["model"]["steps"] == 1 and results["data"]["model_size"] == [64, 64]   # tiny works at 64 px
     # The floor is the input scored as the result, computed here independently.
     items = load_items(dataset, "test", count=2)
-    floors = []
+    floors, albedo_floors = [], []
     for item in items:
         big = [torch.nn.functional.interpolate(torch.from_numpy(x).permute(0, 3, 1, 2), size=(64, 64),
                                                mode="bilinear", antialias=True, align_corners=False)
-               .clamp(0, 1).permute(0, 2, 3, 1).numpy() for x in (item.input, item.target)]
+               .clamp(0, 1).permute(0, 2, 3, 1).numpy() for x in (item.input, item.target, item.albedo)]
         mask = torch.nn.functional.interpolate(torch.from_numpy(item.mask)[:, None], size=(64, 64),
                                                mode="bilinear", antialias=True, align_corners=False)[:, 0] > 0.5
         floors.append(protocol_metrics(big[0], big[1], mask.numpy())["psnr"])
+        albedo_floors.append(delta_e2000(scale_fit(big[0], big[2], mask.numpy())[0], big[2], mask.numpy()))
     assert test["floor"]["relit"]["psnr"] == pytest.approx(np.mean(floors), abs=1e-6)
+    assert test["floor"]["albedo"]["delta_e2000"] == pytest.approx(np.mean(albedo_floors), abs=1e-6)
     for section in ("model", "floor", "ceiling"):
         for kind in ("relit", "albedo"):
             assert 5 < test[section][kind]["psnr"] <= 100 and -1 <= test[section][kind]["ssim"] <= 1
+        assert 0 <= test[section]["albedo"]["delta_e2000"] < 100 and "delta_e2000" not in test[section]["relit"]
     assert test["margin"] is not None and math.isfinite(test["margin"])
     assert [row["steps"] for row in results["steps"]] == [1, 2]
     assert results["steps"][0]["relit"] == pytest.approx(test["model"]["relit"])     # the main run, reused
@@ -309,6 +327,7 @@ def test_evaluate_end_to_end_on_the_tiny_preset(dataset, tmp_path, capsys):
             assert 5 < full[source]["relit"][method]["psnr"] <= 100
     assert full["oracle"]["relit"]["plain"]["psnr"] > full["model"]["relit"]["plain"]["psnr"]   # truth beats noise
     report = (out / "metrics.md").read_text()
+    assert "| albedo ΔE2000 |" in report and f"| {test['model']['albedo']['delta_e2000']:.2f} |" in report
     for heading in ("| model |", "floor: input returned unchanged", "ceiling: tokenizer", "Probe-following margin",
                     "Train-set reproduction", "Steps vs quality", "Denoiser error per σ", "Full-resolution output"):
         assert heading in report

@@ -22,8 +22,7 @@ from PIL import Image
 
 from relight_core import media
 from relight_core.cli import main
-from tests.factory import make_mp4, make_png, make_sun_probe, write_exr
-from tests.test_app_api import relight_args, run_job, start_studio
+from tests.factory import make_mp4, make_png, make_sun_probe, relight_args, run_job, start_studio, write_exr
 
 FAST = ["--model", "tiny", "--steps", "1", "--size", "48"]
 

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import torch
 
-from relight_core import lighting, preview
+from relight_core import colour, lighting, preview
 from relight_core.errors import InputError
 from relight_core.pipeline import Relighter, RelightRequest
 from tests.factory import lighting_the_preview_shows, record_encoded_lighting
@@ -36,6 +36,41 @@ def test_lower_is_warmer_and_higher_is_cooler():
     assert ratios == sorted(ratios, reverse=True)
 
 
+def test_a_black_body_light_set_to_another_temperature_has_that_black_bodys_colour():
+    """The gains are colour-science's CCT → xy → linear sRGB: light of the neutral black body (6500 K)
+    white-balanced to `kelvin` has exactly the chromaticity of the Planckian locus at `kelvin`."""
+    science = colour.colour_science()
+    neutral = colour.xy_to_linear_srgb(lighting.planckian_xy(lighting.NEUTRAL_KELVIN))
+    for kelvin in (2000, 3200, 5000, 9000, 20000):
+        light = neutral * lighting.light_gains(kelvin).double().numpy()
+        xy = science.XYZ_to_xy(science.RGB_to_XYZ(light, "sRGB"))
+        np.testing.assert_allclose(xy, lighting.planckian_xy(kelvin), atol=1e-4)
+
+
+def test_gains_are_vectorised_over_temperatures_and_tints():
+    kelvins = [2000.0, 3200.0, 6500.0, 12000.0]
+    together = lighting.light_gains(kelvins)
+    assert together.shape == (4, 3) and together.dtype == torch.float32
+    for row, kelvin in zip(together, kelvins):
+        torch.testing.assert_close(row, lighting.light_gains(kelvin))
+    assert torch.equal(together[2], torch.ones(3))
+    assert lighting.light_gains([6500, 6500]).shape == (2, 3)
+
+
+def test_tint_turns_the_light_green_or_magenta_at_the_same_brightness():
+    luminance = torch.tensor([0.2126, 0.7152, 0.0722])
+    green, magenta = lighting.light_gains(6500, 0.01), lighting.light_gains(6500, -0.01)
+    assert green[1] > max(green[0], green[2]) and magenta[1] < min(magenta[0], magenta[2])
+    for gains in (green, magenta, lighting.light_gains(3200, 0.005)):
+        assert float(gains @ luminance) == pytest.approx(1.0, abs=1e-5)
+    probe = torch.rand(4, 8, 3)
+    torch.testing.assert_close(lighting.adjust_light(probe, 1.0, 5000, 0.01),
+                               (probe * lighting.light_gains(5000, 0.01)).clamp(0, lighting.HDR_MAX))
+    for tint in (0.05, -1, float("nan"), "green"):
+        with pytest.raises(InputError, match="tint"):
+            lighting.white_balance(probe, 5000, tint)
+
+
 @pytest.mark.parametrize("kelvin", [0, 1000, 40000, float("nan"), float("inf"), "warm"])
 def test_out_of_range_temperatures_are_one_sentence(kelvin):
     with pytest.raises(InputError, match="colour temperature"):
@@ -51,21 +86,24 @@ def test_adjust_light_cleans_scales_then_colours():
 
 def test_the_model_gets_the_light_the_preview_shows(monkeypatch):
     """Pinned like the rotation: the lighting the pipeline encodes is the preview's camera-frame lookup
-    of `adjust_light(probe, intensity, temperature)`, at the same rotation."""
+    of `adjust_light(probe, intensity, temperature, tint)`, at the same rotation."""
     relighter = Relighter.load("tiny", device="cpu")
     probe = torch.rand(32, 64, 3) * 4
     seen = record_encoded_lighting(monkeypatch)
     frames = np.random.default_rng(0).random((1, 32, 48, 3), dtype=np.float32)
     relighter.relight(RelightRequest(frames=frames, probe=probe, rotation=30.0, intensity=2.0, temperature=3200,
-                                     steps=1, sampler="euler"))
+                                     tint=0.01, steps=1, sampler="euler"))
     assert seen, "the pipeline encoded no lighting"
-    expected = lighting_the_preview_shows(relighter, lighting.adjust_light(probe, 2.0, 3200), seen[0], 30.0)
+    expected = lighting_the_preview_shows(relighter, lighting.adjust_light(probe, 2.0, 3200, 0.01), seen[0], 30.0)
     torch.testing.assert_close(seen[0], expected, rtol=1e-4, atol=1e-5)
-    # ...and the colour really reached it: a neutral run encodes other light.
-    seen.clear()
-    relighter.relight(RelightRequest(frames=frames, probe=probe, rotation=30.0, intensity=2.0, steps=1,
-                                     sampler="euler"))
-    assert not torch.allclose(seen[0], expected)
+    # ...and the colour really reached it: a neutral run, or one without the tint, encodes other light.
+    for other in ({}, {"temperature": 3200}):
+        seen.clear()
+        relighter.relight(RelightRequest(frames=frames, probe=probe, rotation=30.0, intensity=2.0, steps=1,
+                                         sampler="euler", **other))
+        assert not torch.allclose(seen[0], expected)
+    with pytest.raises(InputError, match="tint"):
+        relighter.relight(RelightRequest(frames=frames, probe=probe, tint=0.5, steps=1))
 
 
 def test_preview_balls_follow_the_temperature():
@@ -76,3 +114,5 @@ def test_preview_balls_follow_the_temperature():
     diffuse = (slice(24, 40), slice(64 + 24, 64 + 40))  # the centre of the matte ball
     assert abs(neutral[diffuse][..., 0].mean() - neutral[diffuse][..., 2].mean()) < 2  # grey light: grey ball
     assert warm[diffuse][..., 0].mean() > warm[diffuse][..., 2].mean() + 40            # warm light: orange ball
+    green = preview.render_preview(probe, 0.0, config=config, tint=0.015).astype(float)
+    assert green[diffuse][..., 1].mean() > max(green[diffuse][..., 0].mean(), green[diffuse][..., 2].mean()) + 5

@@ -20,6 +20,7 @@ from relight_core.media import (
     load_video,
     probe_video,
     linear_to_srgb,
+    read_hdr,
     resize_frames,
     save_exr,
     save_image,
@@ -148,6 +149,40 @@ def test_save_image_and_exr_round_trip(tmp_path):
         pixels = f.channels()["RGB"].pixels
         assert pixels.dtype == np.float16 and np.allclose(pixels, linear, rtol=1e-3)
     assert sorted(os.listdir(tmp_path)) == ["h.exr", "out", "x.exr"]  # no temporary files left
+
+
+def test_the_one_hdr_reader_serves_pictures_probes_and_the_dataset(tmp_path):
+    """`read_hdr` reads EXR (any channel pixel types, grey) and Radiance alike; each caller keeps its own
+    size limit, checked from the header before any pixel is decoded, and names the file its own way."""
+    import cv2
+
+    from relight_core import lighting
+    from relight_core.data import files
+
+    mixed = {"R": np.full((4, 6), 1.5, np.float32), "G": np.full((4, 6), 2.0, np.float16),
+             "B": np.full((4, 6), 3.0, np.float32)}                 # half and float planes in one file
+    OpenEXR.File({"type": OpenEXR.scanlineimage}, mixed).write(str(tmp_path / "mixed.exr"))
+    expected = np.broadcast_to(np.float32([1.5, 2.0, 3.0]), (4, 6, 3))
+    np.testing.assert_array_equal(read_hdr(tmp_path / "mixed.exr"), expected)
+    np.testing.assert_array_equal(files.read_exr(tmp_path / "mixed.exr"), expected)
+    np.testing.assert_array_equal(lighting.load_probe(tmp_path / "mixed.exr").numpy(), expected)
+    cv2.imwrite(str(tmp_path / "p.hdr"), np.full((4, 6, 3), 0.25, np.float32))
+    assert read_hdr(tmp_path / "p.hdr").shape == (4, 6, 3) and np.allclose(read_hdr(tmp_path / "p.hdr"), 0.25)
+    seen = []
+
+    def refuse(width, height):
+        seen.append((width, height))
+        raise InputError("too big.")
+
+    for name in ("mixed.exr", "p.hdr"):
+        with pytest.raises(InputError, match="too big"):
+            read_hdr(tmp_path / name, check_size=refuse)
+    assert seen == [(6, 4), (6, 4)]
+    (tmp_path / "note.exr").write_text("not an image")
+    with pytest.raises(InputError, match="^The light probe note.exr is not an OpenEXR"):
+        lighting.load_probe(tmp_path / "note.exr")
+    with pytest.raises(InputError, match="^note.exr is not a supported image"):
+        load_image(tmp_path / "note.exr")
 
 
 # ---------------------------------------------------------------------------------------------
@@ -309,9 +344,9 @@ def test_bad_ranges_and_budget(tmp_path, monkeypatch):
     for kwargs in [dict(start=5), dict(start=3, end=2), dict(max_frames=0), dict(start=-1)]:
         with pytest.raises(InputError):
             load_video(tmp_path / "v.mp4", **kwargs)
-    import relight_core.media as media
+    from relight_core.media import video
 
-    monkeypatch.setattr(media, "MAX_DECODED_PIXELS", 4 * 32 * 48)  # room for 4 frames only
+    monkeypatch.setattr(video, "MAX_DECODED_PIXELS", 4 * 32 * 48)  # room for 4 frames only
     with pytest.raises(InputError, match="max_frames"):
         load_video(tmp_path / "v.mp4")
     assert load_video(tmp_path / "v.mp4", max_frames=4).frames.shape[0] == 4

@@ -43,10 +43,11 @@ def angle_deg(a, b) -> float:
 
 
 def test_camera_radiance_is_the_model_panorama():
+    """The look-up every preview colour comes from is the one that builds the model's panorama."""
     probe = spot_probe((0.3, 0.5, -0.8))
     for rotation in (0.0, 37.5, 180.0, 290.0):
         directions = lighting.panorama_directions(32, 64).reshape(-1, 3)
-        ours = preview.camera_radiance(probe, directions, rotation).reshape(32, 64, 3)
+        ours = lighting.camera_radiance(probe, directions, rotation).reshape(32, 64, 3)
         expected = lighting.probe_in_camera(probe, 32, 64, rotation=rotation)
         torch.testing.assert_close(ours, expected, rtol=1e-5, atol=1e-6)  # float summation order only
 
@@ -81,8 +82,14 @@ def test_diffuse_ball_is_brightest_facing_the_light():
 def test_uniform_light_gives_uniform_diffuse_ball_of_albedo():
     probe = torch.ones(32, 64, 3)
     normals = torch.nn.functional.normalize(torch.randn(50, 3), dim=1)
-    radiance = preview.diffuse_colors(probe, normals, 0.0, albedo=0.8, rows=32)
+    radiance = 0.8 * lighting.diffuse_radiance(probe, normals, 0.0, height=32)
     torch.testing.assert_close(radiance, torch.full_like(radiance, 0.8), atol=0.02, rtol=0)
+    # ...and the preview's matte ball shows exactly that shading: 0.8 of uniform light 4.0 in the middle.
+    balls = preview.render_balls(torch.full((16, 32, 3), 4.0), 0.0, CONFIG)
+    size = CONFIG.ball_size
+    expected = preview.to_display(torch.tensor([[3.2, 3.2, 3.2]]))[0].astype(int)
+    middle = balls[size // 2 - 4:size // 2 + 4, size + size // 2 - 4:size + size // 2 + 4].reshape(-1, 3)
+    assert np.abs(middle.astype(int) - expected).max() <= 2, (middle.mean(axis=0), expected)
 
 
 def test_preview_image_layout_and_forward_marker():

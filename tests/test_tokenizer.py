@@ -6,7 +6,6 @@ import pytest
 import torch
 import torch.nn.functional as F
 from safetensors.torch import save_file
-from torch import nn
 
 from relight_core.errors import InputError
 from relight_core.tokenizer import (
@@ -20,6 +19,7 @@ from relight_core.tokenizer import (
     latent_frames,
     tokenizer_loss,
 )
+from tests.factory import FakeCosmosDecoder, FakeCosmosEncoder
 
 H, W = 32, 48
 
@@ -179,31 +179,6 @@ def test_build_errors(tmp_path: Path):
 
 
 # --- Cosmos TorchScript loader ---------------------------------------------------------------------
-
-
-class FakeCosmosEncoder(nn.Module):
-    """Same I/O as the released encoder.jit: a causal 8×8×8 patch embedding, returns a tuple."""
-
-    def __init__(self):
-        super().__init__()
-        self.proj = nn.Conv3d(3, 16, 8, stride=8)
-
-    def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        padded = torch.cat([x[:, :, :1].expand(-1, -1, 7, -1, -1), x], dim=2)  # (B, 3, 8t, H, W)
-        latent = self.proj(padded)  # (B, 16, t, H/8, W/8)
-        return latent, latent.abs()
-
-
-class FakeCosmosDecoder(nn.Module):
-    """Same I/O as the released decoder.jit: 16-channel latents to 1 + 8(t-1) frames at 8× size."""
-
-    def __init__(self):
-        super().__init__()
-        self.proj = nn.Conv3d(16, 3, 1)
-
-    def forward(self, z: torch.Tensor) -> torch.Tensor:
-        x = self.proj(z).repeat_interleave(8, dim=2)[:, :, 7:]  # (B, 3, T, h, w)
-        return x.repeat_interleave(8, dim=3).repeat_interleave(8, dim=4)  # (B, 3, T, H, W)
 
 
 @pytest.fixture

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from relight_core.data.dataset import write_frame, write_manifest, write_meta
+from relight_core.data.dataset import write_manifest
 from relight_core.dit import CHANNELS, LIGHTING_CHANNELS, pack_lighting
 from relight_core.training import add_training_commands
 from relight_core.training.autoencoder import TokenizerTrainConfig, train_tokenizer
@@ -15,28 +15,7 @@ from relight_core.training.joint import DiTTrainConfig, train_dit, train_step
 from relight_core.training.latents import build_latent_set, image_frame_indices
 from relight_core.training.loop import load_checkpoint, step_generator
 from relight_core.training.recipe import MODES, Recipe, make_example, sample_modes
-
-SIZE, FRAMES = 32, 9
-
-
-def write_scene(root, split, index, frames=FRAMES, size=SIZE):
-    """A synthetic sample in the dataset format: two lights, smooth images, a sun probe per light."""
-    rng = np.random.default_rng(index)
-    sample = root / split / f"scene_{index:06d}"
-    y, x = np.mgrid[0:size, 0:size] / size
-    albedo = np.stack([x, y, 0.5 + 0.0 * x], -1) * rng.uniform(0.5, 1.0, 3)
-    for t in range(frames):
-        shift = t / frames
-        for light in (0, 1):
-            shade = 0.3 + 0.7 * np.clip(np.cos(2 * np.pi * (x + shift + light / 2)), 0, 1)[..., None]
-            write_frame(sample, f"rgb{light}", t, np.clip(albedo * shade, 0, 1))
-            env = np.full((size, size, 3), 0.2, np.float32)
-            env[size // 4, (size // 4 + light * size // 2 + t) % size] = 500.0
-            write_frame(sample, f"env{light}", t, env)
-        write_frame(sample, "albedo", t, albedo)
-        write_frame(sample, "mask", t, (y > 0.2).astype(np.float32))
-    write_meta(sample, {"kind": "synthetic", "frames": frames, "height": size, "width": size, "lights": 2})
-
+from tests.factory import FRAMES, SIZE, write_scene
 
 @pytest.fixture(scope="module")
 def dataset_root(tmp_path_factory):

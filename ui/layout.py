@@ -9,7 +9,7 @@ from pathlib import Path
 import gradio as gr
 
 from relight_core.diffusion import SAMPLERS
-from relight_core.lighting import DEFAULT_ROTATION, MAX_PITCH_DEG, NEUTRAL_KELVIN
+from relight_core.lighting import DEFAULT_ROTATION, MAX_PITCH_DEG, MAX_TINT, NEUTRAL_KELVIN
 from ui.studio import (
     CLEAR,
     CLEAR_COMPARE,
@@ -114,6 +114,8 @@ def build_demo(studio: Studio, examples_dir: Path | None = None) -> gr.Blocks:
                     temperature = gr.Slider(*TEMPERATURES, value=NEUTRAL_KELVIN, step=100, elem_id="temperature",
                                             label="Light colour temperature (kelvin)",
                                             info="6500 K is neutral; lower is warmer (orange), higher cooler (blue).")
+                    tint = gr.Slider(-MAX_TINT, MAX_TINT, value=0.0, step=0.001, elem_id="tint",
+                                     label="Light tint (Δuv)", info="0 is none; + greener, − more magenta.")
                     with gr.Row():
                         camera_pitch = gr.Slider(-MAX_PITCH_DEG, MAX_PITCH_DEG, value=0, step=0.5,
                                                  label="Camera pitch (degrees)", elem_id="camera-pitch",
@@ -172,7 +174,7 @@ def build_demo(studio: Studio, examples_dir: Path | None = None) -> gr.Blocks:
         if examples_dir is not None and (examples_dir / "manifest.json").is_file():
             _examples(studio, examples_dir, input_file, probe_name, rotation, mode,
                       [status, out_input, out_relit, out_albedo, vid_input, vid_relit, vid_albedo, compare,
-                       seeds_gallery, downloads], [probe_file, exposure, temperature, camera_pitch, camera_roll])
+                       seeds_gallery, downloads], [probe_file, exposure, temperature, camera_pitch, camera_roll, tint])
 
         # ------------------------------------------------------------------ events
         # The run button is named after the mode, and waits until the upload (and the probe, when the
@@ -210,17 +212,17 @@ def build_demo(studio: Studio, examples_dir: Path | None = None) -> gr.Blocks:
                              api_visibility="private").then(_run_button, run_button_inputs, run, queue=False,
                                                             api_visibility="private")
         page_preview_inputs = [probe_name, probe_file, rotation, exposure, rotate_light, sweep_start, temperature,
-                               camera_pitch, camera_roll]
+                               camera_pitch, camera_roll, tint]
         # Renders follow the slider while it moves; "always_last" drops stale positions. A probe that
         # cannot be used shows no preview here: probe_info says why.
         for component in (rotation, probe_name, probe_file, exposure, temperature, camera_pitch, camera_roll,
-                          rotate_light, sweep_start):
+                          tint, rotate_light, sweep_start):
             component.change(studio.light_preview_quiet, page_preview_inputs, light_preview,
                              trigger_mode="always_last", concurrency_limit=2, concurrency_id="preview",
                              api_visibility="private")
         api_preview.click(studio.light_preview,
                           [probe_name, probe_file, rotation, exposure, mode, rotate_light, sweep_start, temperature,
-                           camera_pitch, camera_roll],
+                           camera_pitch, camera_roll, tint],
                           light_preview, concurrency_id="preview", api_name="light_preview")
         demo.load(studio.light_preview_quiet, page_preview_inputs, light_preview, api_visibility="private")
 
@@ -230,7 +232,7 @@ def build_demo(studio: Studio, examples_dir: Path | None = None) -> gr.Blocks:
             studio.run,
             [input_file, mode, probe_name, probe_file, rotation, exposure, rotate_light, sweep_start, sweep_end,
              num_seeds, frame_start, frame_end, size, steps, sampler, seed, guidance, model, temperature,
-             camera_pitch, camera_roll],
+             camera_pitch, camera_roll, tint],
             run_outputs, api_name="relight", show_progress="hidden", concurrency_id="model")
         # A mode the user picks starts a new job: results made in another mode would sit under the wrong
         # labels (examples set the mode too, with their own results, hence .input, not .change).
@@ -291,7 +293,7 @@ def _run_button(mode: str, input_ok: bool, probe_ok: bool):
 def _examples(studio: Studio, examples_dir: Path, input_file, probe_name, rotation, mode, outputs,
               light_controls) -> None:
     """Example inputs whose results were computed once by scripts/make_examples.py. Clicking one also
-    drops an uploaded probe and resets exposure, colour temperature and camera tilt (`light_controls`),
+    drops an uploaded probe and resets exposure, colour temperature, camera tilt and tint (`light_controls`),
     so the controls describe the cached result."""
     manifest = json.loads((examples_dir / "manifest.json").read_text())
     manifest["root"] = str(examples_dir)
@@ -300,5 +302,5 @@ def _examples(studio: Studio, examples_dir: Path, input_file, probe_name, rotati
     example_name = gr.Textbox(visible=False, label="Example")
     gr.Examples(rows, [input_file, probe_name, rotation, mode, example_name],
                 [*outputs, *light_controls],
-                fn=lambda *values: (*studio.show_example(manifest, values[-1]), None, 0, NEUTRAL_KELVIN, 0, 0),
+                fn=lambda *values: (*studio.show_example(manifest, values[-1]), None, 0, NEUTRAL_KELVIN, 0, 0, 0.0),
                 run_on_click=True, cache_examples=False, label="Examples (results cached on disk)")

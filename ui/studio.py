@@ -157,7 +157,9 @@ class Studio:
         with self._model_lock:
             if model not in self._relighters:
                 self._relighters.clear()  # free the previous model before loading the next
-                self._relighters[model] = Relighter.load(model, precision=self.config.precision)
+                relighter = Relighter.load(model, precision=self.config.precision)
+                relighter.warm_up()  # one-off costs paid now, and estimates from this machine's speed
+                self._relighters[model] = relighter
             return self._relighters[model]
 
     def model_notice(self) -> str:
@@ -269,9 +271,10 @@ class Studio:
 
     def light_preview(self, name: str | None, upload: str | None, rotation: float, exposure: float,
                       mode: str, rotate_light: bool = False, sweep_start: float = 0.0,
-                      temperature: float = lighting.NEUTRAL_KELVIN, pitch: float = 0.0, roll: float = 0.0):
-        """The sphere + panorama preview of the probe at this rotation, exposure, colour temperature
-        and camera tilt (pitch, roll)."""
+                      temperature: float = lighting.NEUTRAL_KELVIN, pitch: float = 0.0, roll: float = 0.0,
+                      tint: float = 0.0):
+        """The sphere + panorama preview of the probe at this rotation, exposure, colour temperature,
+        camera tilt (pitch, roll) and tint."""
         if not MODE_VIEWS.get(mode, MODE_VIEWS["Relight"]).uses_probe:
             return None
         # What the first frame gets (lighting.frame_rotations: the slider's yaw plus the sweep's start).
@@ -279,6 +282,7 @@ class Studio:
             rotation = lighting.frame_rotations(1, float(rotation), bool(rotate_light),
                                                 (float(sweep_start), 0.0))[0]
             temperature = lighting.check_temperature(temperature)
+            tint = lighting.check_tint(tint)
             lighting.camera_rotation(pitch, roll)
         except InputError as exc:
             raise _fail(exc) from exc
@@ -290,17 +294,17 @@ class Studio:
         except InputError as exc:
             raise _fail(exc, path) from exc
         return preview.render_preview(probe, float(rotation), intensity=2.0 ** float(exposure),
-                                      temperature=temperature, pitch=float(pitch), roll=float(roll))
+                                      temperature=temperature, pitch=float(pitch), roll=float(roll), tint=tint)
 
     def light_preview_quiet(self, name: str | None, upload: str | None, rotation: float, exposure: float,
                             rotate_light: bool, sweep_start: float, temperature: float, pitch: float = 0.0,
-                            roll: float = 0.0):
+                            roll: float = 0.0, tint: float = 0.0):
         """`light_preview` for the page, where the panel is hidden in modes without a probe (so the mode
         does not matter): a probe that cannot be used shows no preview, and the line under the probe
         controls (`probe_status`) says why, so no second message appears."""
         try:
             return self.light_preview(name, upload, rotation, exposure, "Relight", rotate_light, sweep_start,
-                                      temperature, pitch, roll)
+                                      temperature, pitch, roll, tint)
         except gr.Error:
             return None
 
@@ -310,7 +314,7 @@ class Studio:
             rotation: float, exposure: float, rotate_light: bool, sweep_start: float, sweep_end: float,
             num_seeds: float, frame_start: float, frame_end: float, size: int, steps: float, sampler: str,
             seed: float, guidance: float, model: str, temperature: float, camera_pitch: float,
-            camera_roll: float, request: gr.Request) -> Iterator[tuple]:
+            camera_roll: float, tint: float = 0.0, request: gr.Request = None) -> Iterator[tuple]:
         """Relight the input; stream progress and previews, then the final files."""
         if not path:
             raise gr.Error("Upload an image or a video first.", print_exception=False)
@@ -323,7 +327,7 @@ class Studio:
                                  float(rotation), 2.0 ** float(exposure), bool(rotate_light),
                                  (float(sweep_start), float(sweep_end)), int(num_seeds), frame_start,
                                  frame_end, int(size), int(steps), sampler, int(seed), float(guidance), model,
-                                 float(temperature), (float(camera_pitch), float(camera_roll)))
+                                 float(temperature), (float(camera_pitch), float(camera_roll)), float(tint))
         except InputError as exc:
             raise _fail(exc, path, probe_upload) from exc
         finally:
@@ -337,7 +341,7 @@ class Studio:
 
     def _run(self, job: Path, stop: threading.Event, path, mode, probe_name, probe_upload, rotation,
              intensity, rotate_light, sweep, num_seeds, frame_start, frame_end, size, steps, sampler, seed,
-             guidance, model, temperature=lighting.NEUTRAL_KELVIN, tilt=(0.0, 0.0)) -> Iterator[tuple]:
+             guidance, model, temperature=lighting.NEUTRAL_KELVIN, tilt=(0.0, 0.0), tint=0.0) -> Iterator[tuple]:
         started = time.monotonic()
         view = MODE_VIEWS[next(label for label, name in MODES.items() if name == mode)]
         relighter = self.relighter(model)
@@ -371,7 +375,7 @@ class Studio:
             request = RelightRequest(
                 frames=frames, fps=loaded.fps, audio_path=loaded.audio_path, mode=mode, probe=probe,
                 rotation=rotation, rotate_light=rotate_light, sweep=sweep, intensity=intensity,
-                temperature=temperature, camera_pitch=tilt[0], camera_roll=tilt[1],
+                temperature=temperature, tint=tint, camera_pitch=tilt[0], camera_roll=tilt[1],
                 albedo=frames if mode == "render" else None, steps=steps,
                 sampler=sampler, seed=run_seed, guidance=guidance, should_stop=stop.is_set)
             relit_so_far = np.zeros((0, *frames.shape[1:]), np.float32)  # finished chunks, stitched

@@ -8,7 +8,7 @@ import time
 
 import numpy as np
 
-from relight_core.data.files import srgb_encode
+from relight_core.colour import linear_to_srgb
 from relight_core.data.generate import frame_seed
 from relight_core.data.render import SceneRenderer, init_mitsuba
 from relight_core.data.scenes import sample_scene
@@ -38,10 +38,10 @@ def psnr_against_reference(size: int, spps: list[int], reference_spp: int, scene
     for index in range(scenes):
         spec = sample_scene(seed, "train", index, frames=1)
         with SceneRenderer(spec, size, reference_spp) as renderer:
-            reference = srgb_encode(renderer.render(0, 0, seed=12345))
+            reference = linear_to_srgb(np.clip(renderer.render(0, 0, seed=12345), 0, 1))
         for spp in spps:
             with SceneRenderer(spec, size, spp) as renderer:
-                image = srgb_encode(renderer.render(0, 0, seed=index))
+                image = linear_to_srgb(np.clip(renderer.render(0, 0, seed=index), 0, 1))
             mse = float(np.mean((image - reference) ** 2))
             scores[spp].append(10 * np.log10(1.0 / max(mse, 1e-12)))
     return {spp: float(np.mean(v)) for spp, v in scores.items()}

@@ -2,22 +2,14 @@
 
 from __future__ import annotations
 
-import argparse
 import os
 from pathlib import Path
 
+from relight_core.arguments import int_at_least
 from relight_core.errors import InputError
 
 
-def positive_int(text: str) -> int:
-    """argparse type: a whole number ≥ 1, or one sentence saying what is wrong."""
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"'{text}' is not a whole number.") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"'{text}' must be at least 1.")
-    return value
+positive_int = int_at_least(1)  # argparse type: a whole number ≥ 1
 
 
 def add_data_commands(subparsers) -> None:

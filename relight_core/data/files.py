@@ -1,4 +1,5 @@
-"""Image files of the dataset format: 8-bit PNG frames and half-float EXR probes."""
+"""Image files of the dataset format: 8-bit PNG frames and half-float EXR probes (through the one
+HDR file reader and writer, `relight_core.media.hdr`)."""
 
 from __future__ import annotations
 
@@ -7,19 +8,8 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-import OpenEXR
 
-
-def srgb_encode(linear: np.ndarray) -> np.ndarray:
-    """Linear → sRGB transfer (IEC 61966-2-1), input clipped to [0, 1]."""
-    x = np.clip(linear, 0.0, 1.0)
-    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1.0 / 2.4) - 0.055)
-
-
-def srgb_decode(encoded: np.ndarray) -> np.ndarray:
-    """sRGB → linear transfer, the inverse of `srgb_encode` on [0, 1]."""
-    x = np.clip(encoded, 0.0, 1.0)
-    return np.where(x <= 0.04045, x / 12.92, np.power((x + 0.055) / 1.055, 2.4))
+from relight_core.media.hdr import read_hdr, save_exr
 
 
 def write_png(path: str | Path, image: np.ndarray) -> None:
@@ -45,23 +35,12 @@ def read_image(path: str | Path) -> np.ndarray:
 
 def write_exr(path: str | Path, linear: np.ndarray) -> None:
     """Write linear [H,W,3] radiance as a half-float, ZIP-compressed EXR, atomically."""
-    data = np.ascontiguousarray(np.clip(linear, 0.0, 65504.0).astype(np.float16))
-    path = Path(path)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp.exr")
-    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
-    OpenEXR.File(header, {"RGB": data}).write(str(tmp))
-    os.replace(tmp, path)
+    save_exr(path, np.clip(linear, 0.0, 65504.0), half=True)
 
 
 def read_exr(path: str | Path) -> np.ndarray:
-    """Read an RGB EXR as float32 [H,W,3] (no cleaning: dataset files are ours)."""
-    with OpenEXR.File(str(path)) as f:
-        channels = f.channels()
-        if "RGB" in channels:
-            pixels = channels["RGB"].pixels
-        else:
-            pixels = np.stack([channels[c].pixels for c in "RGB"], axis=-1)
-        return np.asarray(pixels, dtype=np.float32)
+    """Read an RGB EXR as float32 [H,W,3] (no cleaning, no size limit: dataset files are ours)."""
+    return read_hdr(path)
 
 
 def _atomic_write(path: Path, payload: bytes) -> None:

@@ -10,8 +10,8 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from relight_core.colour import linear_to_srgb
 from relight_core.data.dataset import is_finished, write_frame, write_manifest, write_meta
-from relight_core.data.files import srgb_encode
 from relight_core.data.render import SceneRenderer, init_mitsuba, stratified_spp
 from relight_core.data.scenes import SPLITS, SceneSpec, camera_to_world, probe_yaw, sample_scene
 
@@ -48,10 +48,10 @@ def render_scene(spec: SceneSpec, size: int, spp: int, out_dir: Path) -> None:
         for t in range(spec.frames):
             seed = frame_seed(spec, t)
             for light in (0, 1):
-                write_frame(out_dir, f"rgb{light}", t, srgb_encode(renderer.render(t, light, seed)))
+                write_frame(out_dir, f"rgb{light}", t, linear_to_srgb(renderer.render(t, light, seed)))
                 write_frame(out_dir, f"env{light}", t, renderer.camera_probe(t, light))
             albedo, mask = renderer.render_aovs(t, seed)  # shared by both lights: same geometry
-            write_frame(out_dir, "albedo", t, srgb_encode(albedo))
+            write_frame(out_dir, "albedo", t, linear_to_srgb(albedo))
             write_frame(out_dir, "mask", t, mask)
     write_meta(out_dir, {
         "kind": "synthetic", "frames": spec.frames, "height": size, "width": size, "lights": 2,

@@ -26,7 +26,8 @@ import numpy as np
 import torch
 
 from relight_core import lighting
-from relight_core.data.files import read_exr, read_image, srgb_decode
+from relight_core.colour import srgb_to_linear
+from relight_core.data.files import read_exr, read_image
 from relight_core.errors import InputError
 
 NUM_DIRECTIONS = 25
@@ -78,12 +79,12 @@ def load_chrome(scene: Path, direction: int, size: int = 256, mip: int = 2) -> n
         return read_exr(exr)
     jpg = probe_dir / f"dir_{direction}_chrome{size}.jpg"
     if jpg.is_file():
-        return srgb_decode(_read_rgb(jpg)).astype(np.float32)
+        return srgb_to_linear(_read_rgb(jpg)).astype(np.float32)
     box = load_meta(scene).get("chrome", {}).get("bounding_box")
     if box is None:
         raise InputError(f"{scene} has neither probes/dir_{direction}_chrome{size}.jpg nor a chrome bounding "
                          "box in meta.json; download the probes archive for this scene.")
-    photo = srgb_decode(load_photo(scene, direction, mip))
+    photo = srgb_to_linear(load_photo(scene, direction, mip))
     sy, sx = photo.shape[0] / FULL_SIZE[0], photo.shape[1] / FULL_SIZE[1]
     x, y, w, h = box["x"] * sx, box["y"] * sy, box["w"] * sx, box["h"] * sy
     crop = photo[int(round(y)):int(round(y + h)), int(round(x)):int(round(x + w))]

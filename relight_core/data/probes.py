@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from relight_core import lighting
+from relight_core import colour, lighting
 from relight_core.data.files import write_exr
 
 ENVMAP_DIR = Path(__file__).resolve().parents[2] / "envmaps"
@@ -63,7 +63,7 @@ def white_patch_radiance(probe: np.ndarray) -> float:
     theta = (np.arange(h) + 0.5) / h * np.pi
     solid_angle = (2 * np.pi / w) * (np.pi / h) * np.sin(theta)[:, None]  # [h, 1]
     normals = np.array([[0, 1, 0], [1, 0, 0], [-1, 0, 0], [0, 0, 1], [0, 0, -1]], np.float32)
-    luminance = probe @ np.array([0.2126, 0.7152, 0.0722], np.float32)  # [h, w]
+    luminance = colour.luminance(probe)  # [h, w]
     cosines = np.clip(d @ normals.T, 0, None)  # [h, w, 5]
     irradiance = np.einsum("hw,hwn,hw->n", luminance, cosines, np.broadcast_to(solid_angle, (h, w)))
     return float(irradiance.mean() / np.pi)

@@ -24,8 +24,8 @@ import numpy as np
 import torch
 
 from relight_core import lighting
+from relight_core.colour import srgb_to_linear
 from relight_core.data import probes as probe_lib
-from relight_core.data.files import srgb_decode
 from relight_core.data.meshes import build_mesh, write_ply
 from relight_core.data.scenes import (GROUND_SIZE, MaterialSpec, SceneSpec, camera_position,
                                       camera_to_world, object_pose, probe_yaw)
@@ -93,7 +93,7 @@ class SceneRenderer:
         # Texture bitmaps of the ground (index 0) and of each object (index i + 1).
         self._textures = [
             None if mat.texture is None
-            else mi.Bitmap(srgb_decode(make_texture(mat.texture, TEXTURE_SIZE)).astype(np.float32))
+            else mi.Bitmap(srgb_to_linear(make_texture(mat.texture, TEXTURE_SIZE)).astype(np.float32))
             for mat in [spec.ground] + [o.material for o in spec.objects]
         ]
         if probes is None:
@@ -192,7 +192,7 @@ class SceneRenderer:
             base: dict = {"type": "bitmap", "bitmap": self._textures[texture_index], "filter_type": "bilinear",
                           "wrap_mode": "repeat", "to_uv": mi.ScalarTransform4f().scale([k, k, 1])}
         else:
-            base = {"type": "rgb", "value": srgb_decode(np.asarray(mat.base_color)).tolist()}
+            base = {"type": "rgb", "value": srgb_to_linear(np.asarray(mat.base_color)).tolist()}
         bsdf = {"type": "principled", "base_color": base, "roughness": mat.roughness,
                 "metallic": mat.metallic, "specular": mat.specular, "spec_trans": mat.transmission}
         # Open meshes (the airplane's wings) show their back faces; glass needs its sidedness.

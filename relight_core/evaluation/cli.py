@@ -7,6 +7,7 @@ import shlex
 import sys
 from pathlib import Path
 
+from relight_core.arguments import PRECISIONS, int_at_least
 from relight_core.data.cli import positive_int
 
 
@@ -21,21 +22,11 @@ def _steps_list(text: str) -> tuple[int, ...]:
     return values
 
 
-def _count(text: str) -> int:
-    """argparse type: a whole number ≥ 0."""
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"'{text}' is not a whole number.") from None
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"'{text}' must be 0 or more.")
-    return value
+_count = int_at_least(0)  # argparse type: a whole number ≥ 0
 
 
 def add_evaluation_commands(subparsers) -> None:
     """Register `evaluate` on an argparse subparsers object (sets `func`)."""
-    from relight_core.precision import PRECISIONS
-
     p = subparsers.add_parser("evaluate", help="measure a model on a rendered dataset (PSNR/SSIM, floor, "
                                                "ceiling, train reproduction, probe margin, σ sweep)")
     p.add_argument("--data", required=True, type=Path, help="dataset root written by render-data")

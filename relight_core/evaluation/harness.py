@@ -30,7 +30,7 @@ from relight_core.chunking import pad_to_valid
 from relight_core.data.dataset import RelightDataset, read_stream
 from relight_core.diffusion import SAMPLERS
 from relight_core.errors import InputError
-from relight_core.evaluation.metrics import protocol_metrics
+from relight_core.evaluation.metrics import albedo_metrics, protocol_metrics
 from relight_core.pipeline import Relighter, RelightRequest
 from relight_core.precision import autocast
 
@@ -219,11 +219,11 @@ def measure_item(relighter: Relighter, item: EvalItem, options: RunOptions, marg
     out = {
         "name": item.name, "seconds": seconds,
         "model": {"relit": protocol_metrics(relit, item.target, item.mask),
-                  "albedo": protocol_metrics(albedo, item.albedo, item.mask)},
+                  "albedo": albedo_metrics(albedo, item.albedo, item.mask)},
         "floor": {"relit": protocol_metrics(item.input, item.target, item.mask),
-                  "albedo": protocol_metrics(item.input, item.albedo, item.mask)},
+                  "albedo": albedo_metrics(item.input, item.albedo, item.mask)},
         "ceiling": {"relit": protocol_metrics(reconstruct(relighter, item.target), item.target, item.mask),
-                    "albedo": protocol_metrics(reconstruct(relighter, item.albedo), item.albedo, item.mask)},
+                    "albedo": albedo_metrics(reconstruct(relighter, item.albedo), item.albedo, item.mask)},
     }
     if margin:
         other, _, _ = relight(relighter, item.input, item.other_probe, options)

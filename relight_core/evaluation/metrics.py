@@ -12,7 +12,10 @@ minimization before computing the metrics", and masks the background of syntheti
   100 dB, averaged over frames;
 * `ssim`: Wang et al. 2004 (11×11 Gaussian window, σ = 1.5, K1 = 0.01, K2 = 0.03, data range 1,
   'valid' windows) of the two images multiplied by the mask, averaged over the windows centred on
-  mask pixels and over the channels, then over frames.
+  mask pixels and over the channels, then over frames;
+* `delta_e2000`: the mean CIEDE2000 colour difference (colour-science: sRGB display values → CIE
+  Lab under D65) over the frame's mask pixels, averaged over frames; `albedo_metrics` adds it,
+  on the scale-fitted albedo, to the PSNR/SSIM protocol.
 """
 
 from __future__ import annotations
@@ -22,6 +25,8 @@ import math
 import numpy as np
 import torch
 import torch.nn.functional as F
+
+from relight_core import colour
 
 PSNR_CAP = 100.0     # dB for identical images
 SSIM_WINDOW = 11
@@ -102,7 +107,23 @@ def ssim(pred, target, mask=None) -> float:
     return float(np.mean(values))
 
 
+def delta_e2000(pred, target, mask=None) -> float:
+    """Mean over frames of the mean CIEDE2000 on the mask (no scale fit; see `albedo_metrics`)."""
+    p, t = _frames(pred), _frames(target)
+    m = _mask(mask, p.shape) > 0.5                                            # [T,H,W]
+    differences = colour.delta_e_2000(p[m], t[m])                           # every mask pixel of the clip at once
+    per_frame = np.bincount(np.nonzero(m)[0], differences, minlength=p.shape[0]) / m.sum(axis=(1, 2))
+    return float(per_frame.mean())
+
+
 def protocol_metrics(pred, target, mask=None) -> dict[str, float]:
     """{"psnr", "ssim"} of pred against target after the per-channel scale fit on the mask."""
     fitted, _ = scale_fit(pred, target, mask)
     return {"psnr": psnr(fitted, target, mask), "ssim": ssim(fitted, target, mask)}
+
+
+def albedo_metrics(pred, target, mask=None) -> dict[str, float]:
+    """`protocol_metrics` plus "delta_e2000" of the same scale-fitted prediction."""
+    fitted, _ = scale_fit(pred, target, mask)
+    return {"psnr": psnr(fitted, target, mask), "ssim": ssim(fitted, target, mask),
+            "delta_e2000": delta_e2000(fitted, target, mask)}

@@ -15,7 +15,10 @@ from relight_core import media  # noqa: E402
 PROTOCOL = ("PSNR (dB) / SSIM of display values in [0, 1] after a per-channel least-squares scale fit "
             "on the foreground mask; PSNR over mask pixels, SSIM (11×11 Gaussian) over windows centred "
             "on mask pixels; per frame, averaged over frames, then over items (both directions of each "
-            "scene). The lighting is the dataset's camera-frame panorama of the target probe.")
+            "scene). Albedo ΔE2000: the mean CIEDE2000 colour difference (colour-science; sRGB display "
+            "values → CIE Lab, D65 white) over mask pixels of the same scale-fitted albedo, per frame, "
+            "averaged over frames, then over items. The lighting is the dataset's camera-frame panorama "
+            "of the target probe.")
 LABEL_HEIGHT = 14
 MIN_TILE = 128     # pixels: grid tiles are at least this wide
 
@@ -61,12 +64,18 @@ def _pair(metrics: dict | None) -> str:
     return f"{metrics['psnr']:.2f} | {metrics['ssim']:.3f}"
 
 
+def _delta_e(metrics: dict | None) -> str:
+    value = (metrics or {}).get("delta_e2000")
+    return "–" if value is None else f"{value:.2f}"
+
+
 def _quality_table(summary: dict) -> list[str]:
-    lines = ["| | relit PSNR | relit SSIM | albedo PSNR | albedo SSIM |", "|---|---|---|---|---|"]
+    lines = ["| | relit PSNR | relit SSIM | albedo PSNR | albedo SSIM | albedo ΔE2000 |", "|---|---|---|---|---|---|"]
     for key, label in (("model", "model"), ("floor", "floor: input returned unchanged"),
                        ("ceiling", "ceiling: tokenizer encode→decode of the ground truth")):
         row = summary.get(key) or {}
-        lines.append(f"| {label} | {_pair(row.get('relit'))} | {_pair(row.get('albedo'))} |")
+        lines.append(f"| {label} | {_pair(row.get('relit'))} | {_pair(row.get('albedo'))} | "
+                     f"{_delta_e(row.get('albedo'))} |")
     return lines
 
 
@@ -94,10 +103,10 @@ def markdown(results: dict) -> str:
     lines += _quality_table(train) if train["items"] else [f"Not measured: {train.get('note')}."]
     if results.get("steps"):
         lines += ["", "## Steps vs quality (test items)", "",
-                  "| steps | relit PSNR | relit SSIM | albedo PSNR | albedo SSIM | s / item |",
-                  "|---|---|---|---|---|---|"]
-        lines += [f"| {r['steps']} | {_pair(r['relit'])} | {_pair(r['albedo'])} | {r['seconds_per_item']:.1f} |"
-                  for r in results["steps"]]
+                  "| steps | relit PSNR | relit SSIM | albedo PSNR | albedo SSIM | albedo ΔE2000 | s / item |",
+                  "|---|---|---|---|---|---|---|"]
+        lines += [f"| {r['steps']} | {_pair(r['relit'])} | {_pair(r['albedo'])} | {_delta_e(r['albedo'])} | "
+                  f"{r['seconds_per_item']:.1f} |" for r in results["steps"]]
     sigma = results.get("sigma", {})
     if sigma.get("test", {}).get("rows"):
         train_rows = sigma.get("train", {}).get("rows") or []
@@ -129,13 +138,14 @@ def markdown(results: dict) -> str:
             for method, label in (("plain", "plain resize"), ("guided", "guided ratio upsampling")):
                 lines.append(f"| {source}, {label} | {_pair(full[source]['relit'][method])} | "
                              f"{_pair(full[source]['albedo'][method])} |")
-    lines += ["", "## Per item", "", "| item | relit PSNR | floor | ceiling | margin | albedo PSNR | floor | ceiling |",
-              "|---|---|---|---|---|---|---|---|"]
+    lines += ["", "## Per item", "", "| item | relit PSNR | floor | ceiling | margin | albedo PSNR | floor | ceiling "
+              "| albedo ΔE2000 |", "|---|---|---|---|---|---|---|---|---|"]
     for r, split in [(r, "") for r in test["per_item"]] + [(r, " (train)") for r in train.get("per_item") or []]:
         margin = f"{r['margin']:+.2f}" if "margin" in r else "–"
         lines.append(f"| {r['name']}{split} | {r['model']['relit']['psnr']:.2f} | {r['floor']['relit']['psnr']:.2f} | "
                      f"{r['ceiling']['relit']['psnr']:.2f} | {margin} | {r['model']['albedo']['psnr']:.2f} | "
-                     f"{r['floor']['albedo']['psnr']:.2f} | {r['ceiling']['albedo']['psnr']:.2f} |")
+                     f"{r['floor']['albedo']['psnr']:.2f} | {r['ceiling']['albedo']['psnr']:.2f} | "
+                     f"{_delta_e(r['model']['albedo'])} |")
     grids = ["`grids/test_*.png`"] + (["`grids/train_*.png`"] if train["items"] else []) + \
         (["full resolution (input | target | plain | guided): `grids/full_*.png`"] if full else [])
     lines += ["", "Grids (input | target | relit | albedo target | albedo; rows: first, middle, last frame): "

@@ -24,7 +24,7 @@ from relight_core.evaluation.harness import (
     resized,
     sigma_errors,
 )
-from relight_core.evaluation.metrics import protocol_metrics
+from relight_core.evaluation.metrics import albedo_metrics, protocol_metrics
 from relight_core.pipeline import Relighter
 
 
@@ -118,7 +118,8 @@ def run_evaluation(config: EvalConfig, log: Callable[[str], None] = _log) -> dic
                 report.save_grid(out / "grids" / f"{split_name}_{k:03d}.png", item, outputs)
             log(f"  {split_name} [{k + 1}/{len(items)}] {item.name}: relit {metrics['model']['relit']['psnr']:.2f} dB "
                 f"(floor {metrics['floor']['relit']['psnr']:.2f}, ceiling {metrics['ceiling']['relit']['psnr']:.2f}), "
-                f"albedo {metrics['model']['albedo']['psnr']:.2f} dB"
+                f"albedo {metrics['model']['albedo']['psnr']:.2f} dB "
+                f"(ΔE2000 {metrics['model']['albedo']['delta_e2000']:.2f})"
                 + (f", margin {metrics['margin']:+.2f} dB" if "margin" in metrics else "")
                 + f", {metrics['seconds']:.1f} s")
         sets[split_name] = _summary(records)
@@ -134,7 +135,7 @@ def run_evaluation(config: EvalConfig, log: Callable[[str], None] = _log) -> dic
             for item in test:
                 relit, albedo, seconds = relight(relighter, item.input, item.probe, replace(options, steps=steps))
                 rows.append({"model": {"relit": protocol_metrics(relit, item.target, item.mask),
-                                       "albedo": protocol_metrics(albedo, item.albedo, item.mask)},
+                                       "albedo": albedo_metrics(albedo, item.albedo, item.mask)},
                              "seconds": seconds})
         steps_rows.append({"steps": steps, **mean_metrics(rows, "model"),
                            "seconds_per_item": mean_metrics(rows, "seconds")})

@@ -166,6 +166,14 @@ def probe_in_camera(
     return _sample_uv(probe, _yawed(_camera_uv(H, W, cam_to_world), rotation))
 
 
+def camera_radiance(probe: torch.Tensor, directions, rotation: float = DEFAULT_ROTATION,
+                    cam_to_world=None) -> torch.Tensor:
+    """Radiance [..., 3] arriving from camera-frame directions [..., 3]: probe(R_y(rotation)·c2w·d),
+    the look-up `probe_in_camera` makes, at any directions (the preview's balls and panorama)."""
+    world = _as_tensor(directions) @ _camera_rotation(cam_to_world).T @ yaw_matrix(rotation).T
+    return sample_probe(probe, world)
+
+
 def probe_frames(
     probe: torch.Tensor,
     T: int,

@@ -2,7 +2,8 @@
 
 Modules: `loop` (per-step RNG, EMA, checkpoints, JSONL log), `autoencoder` (tokenizer training),
 `latents` (latent cache of a dataset split), `recipe` (conditioning modes, lighting dropout, EDM
-loss), `joint` (DiT training, validation, export), `cli` (`train-tokenizer`, `train`).
+loss), `joint` (DiT training, validation, export), `distributed` (data-parallel `train` under
+torchrun), `cli` (`train-tokenizer`, `train`).
 Only the CLI hook is imported here, so registering the subcommands stays cheap.
 """
 

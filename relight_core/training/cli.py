@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import shlex
 import sys
 from pathlib import Path
@@ -14,7 +15,9 @@ from relight_core.errors import InputError
 
 def _common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--data", required=True, type=Path, help="dataset root written by render-data (train/, test/)")
-    p.add_argument("--run", required=True, type=Path, help="run folder (log.jsonl, ckpt/); an existing run resumes")
+    # --run-dir: torchrun's own parser takes --run for its --run-path (pytorch/pytorch#120601)
+    p.add_argument("--run", "--run-dir", dest="run", required=True, type=Path,
+                   help="run folder (log.jsonl, ckpt/); an existing run resumes; spell it --run-dir under torchrun")
     p.add_argument("--steps", type=positive_int, default=100000, help="stop after this many steps")
     p.add_argument("--minutes", type=float, default=None, help="stop after this much wall time")
     p.add_argument("--lr", type=float, default=2e-4, help="peak learning rate")
@@ -46,8 +49,11 @@ def add_training_commands(subparsers) -> None:
     p.add_argument("--ema-decay", type=float, default=0.999, help="EMA decay (the EMA is what gets exported)")
     p.add_argument("--warmup", type=int, default=200, help="linear learning-rate warm-up steps")
     p.add_argument("--val-every", type=positive_int, default=250)
+    p.add_argument("--log-every", type=positive_int, default=10, help="write a log line every this many steps")
     p.add_argument("--cache", type=Path, default=Path("cache/latents"), help="latent cache folder")
     p.add_argument("--export", type=Path, default=None, help="write the EMA model folder here at the end")
+    p.add_argument("--device", choices=("cpu", "cuda"), default="cpu",
+                   help="where the DiT trains; under torchrun, cuda gives each process the GPU of its local rank")
     p.set_defaults(func=_train)
 
 
@@ -78,9 +84,13 @@ def _train_tokenizer(args) -> int:
 
 def _train(args) -> int:
     from relight_core.checkpoint import MODEL_PRESETS
+    from relight_core.pipeline import resolve_device
+    from relight_core.training import distributed
     from relight_core.training.joint import DiTTrainConfig, train_dit
 
     _setup(args)
+    device = resolve_device(args.device)  # one sentence when --device cuda finds no GPU
+    distributed.check_split(distributed.world_size(), video_batch=args.video_batch, image_batch=args.image_batch)
     if args.preset not in MODEL_PRESETS or MODEL_PRESETS[args.preset].tokenizer.get("type") != "causal-ae":
         raise InputError(f"Preset {args.preset!r} cannot be trained here; use 'small' or 'tiny'.")
     if not args.tokenizer.is_file():
@@ -90,9 +100,17 @@ def _train(args) -> int:
                             tokenizer_preset=args.tokenizer_preset, preset=args.preset, steps=args.steps,
                             minutes=args.minutes, video_batch=args.video_batch, image_batch=args.image_batch,
                             lr=args.lr, weight_decay=args.weight_decay, ema_decay=args.ema_decay,
-                            warmup=args.warmup, val_every=args.val_every,
+                            warmup=args.warmup, val_every=args.val_every, log_every=args.log_every,
                             checkpoint_minutes=args.checkpoint_minutes, seed=args.seed, cache=args.cache,
                             export=args.export, precision=args.precision)
-    command = "python -m relight_core " + " ".join(shlex.quote(a) for a in sys.argv[1:])
-    print(json.dumps(train_dit(config, command=command), indent=1))
+    launcher = (f"torchrun --nproc_per_node {os.environ.get('LOCAL_WORLD_SIZE', distributed.world_size())} -m"
+                if distributed.launched() else "python -m")
+    command = f"{launcher} relight_core " + " ".join(shlex.quote(a) for a in sys.argv[1:])
+    ranks = distributed.join(device.type) if distributed.launched() else distributed.Ranks(device=device)
+    try:
+        summary = train_dit(config, command=command, ranks=ranks)
+    finally:
+        distributed.leave(ranks)
+    if ranks.main:
+        print(json.dumps(summary, indent=1))
     return 0

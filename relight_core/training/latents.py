@@ -120,8 +120,13 @@ class LatentSet:
 
 
 def build_latent_set(dataset: RelightDataset, tokenizer, cache_dir: Path, progress: bool = True,
-                     dtype: torch.dtype | None = None) -> LatentSet:
-    """Encode (or load from `cache_dir`) every scene of `dataset` and index its items (in `dtype`)."""
+                     dtype: torch.dtype | None = None, shard: tuple[int, int] = (0, 1)) -> LatentSet:
+    """Encode (or load from `cache_dir`) every scene of `dataset` and index its items (in `dtype`).
+
+    `shard=(rank, world)` takes only the scenes k with k % world == rank: the share of the cache
+    that one rank of a data-parallel run fills (training.distributed).
+    """
+    rank, world = shard
     cache = Path(cache_dir) / tokenizer_fingerprint(tokenizer) / dataset.split_dir.name
     cache.mkdir(parents=True, exist_ok=True)
     by_scene: dict[Path, list[int]] = {}
@@ -129,6 +134,8 @@ def build_latent_set(dataset: RelightDataset, tokenizer, cache_dir: Path, progre
         by_scene.setdefault(item.sample_dir, []).append(index)
     scenes, items = [], []
     for number, (sample_dir, indices) in enumerate(by_scene.items()):
+        if number % world != rank:
+            continue
         path = cache / f"{sample_dir.name}.safetensors"
         samples = [dataset.items[i] for i in indices]
         if path.is_file():

@@ -108,7 +108,7 @@ def load_checkpoint(run: Path, module_names: list[str]) -> dict | None:
     return {
         "step": int(extra.pop("step")),
         "modules": {name: load_file(str(folder / f"{name}.safetensors")) for name in module_names},
-        "optimizer": torch.load(folder / "optimizer.pt", weights_only=True),
+        "optimizer": torch.load(folder / "optimizer.pt", map_location="cpu", weights_only=True),  # any device resumes
         "extra": extra,
     }
 

@@ -25,7 +25,7 @@ import torch
 
 from relight_core.diffusion import (ConditionedDenoiser, EDMPrecond, edm_loss, get_sigmas_karras,
                                     sample_training_sigma)
-from relight_core.dit import NUM_CLIPS, JointDiT, assemble_inputs
+from relight_core.dit import NUM_CLIPS, JointDiT, network  # network: the one DiT-as-denoiser adapter
 
 MODES = ("default", "albedo_only", "both")
 SIGMA_MAX = float(get_sigmas_karras(1)[0])  # where every sampling run starts (80)
@@ -92,14 +92,6 @@ def make_example(input_latent: torch.Tensor, relit: torch.Tensor, albedo: torch.
     mask[continued, :, 2 * t] = 1.0
     lighting = lighting * (~dropped).to(lighting.dtype).view(b, 1, 1, 1, 1)           # (B, 51, t, h, w)
     return Example(x0, mask, lighting, modes, dropped)
-
-
-def network(dit: JointDiT, x_in: torch.Tensor, c_noise: torch.Tensor, lighting: torch.Tensor,
-            condition_mask: torch.Tensor) -> torch.Tensor:
-    """The raw DiT on preconditioned input, as `Relighter` calls it: assemble 69 channels and run."""
-    b, _, frames, h, w = x_in.shape
-    tokens = assemble_inputs(x_in, condition_mask.expand(b, 1, frames, h, w), lighting, None)  # (B, 69, 3t, h, w)
-    return dit(tokens, c_noise).float()                                                      # (B, 16, 3t, h, w)
 
 
 def denoising_loss(dit: JointDiT, example: Example, recipe: Recipe, generator: torch.Generator
