@@ -6,8 +6,10 @@ plus attention's 4·L²·D a block where the counter misses it), in the precisio
 use here (`--precision`, default auto: see precision.py), as a fraction of the measured matmul peak
 *of that precision*; both the fp32 and the bf16 matmul peak (bf16 at a smaller size on a CPU
 where it is slow, so that the quick bench stays under a minute anywhere); the denoiser evaluations
-per relight of our sampler and of the released one; the 7B preset's parameter count; and peak
-resident memory.
+per relight of our sampler and of the released one; the 7B preset's parameter count; peak
+resident memory; and what a user waits for (`latency`): model load and warm-up, the first streamed
+preview, a whole relight at the model's size and at 256 px (guided full-resolution output), the
+estimate shown before it against the measured time, and one light-preview render.
 """
 
 from __future__ import annotations
@@ -118,6 +120,51 @@ def dit_forward(preset: str, frames: int, size: int = 256, repeats: int = 5,
             "gflops_per_s": round(flops / seconds / 1e9, 1)}
 
 
+def latency(model: str = "default", precision: str = "auto", preview: bool = True) -> dict:
+    """Seconds a user waits, on this machine, for `model` (module docstring)."""
+    import numpy as np
+
+    from relight_core import upsample
+    from relight_core.media import resize_frames
+    from relight_core.pipeline import Progress, Relighter, RelightRequest
+
+    out: dict = {"model": model}
+    started = time.perf_counter()
+    relighter = Relighter.load(model, device="cpu", precision=precision)
+    out["load_s"] = time.perf_counter() - started
+    out["warm_up_s"] = relighter.warm_up()
+    size = relighter.spec.size // relighter.frame_multiple * relighter.frame_multiple
+    rng = np.random.default_rng(0)
+    probe = torch.rand(64, 128, 3, generator=torch.Generator().manual_seed(0)) * 2
+    frames = rng.random((1, size, size, 3), dtype=np.float32)
+    out["size"] = size
+    out["estimate_s"] = relighter.estimate_seconds(1, size, size)
+    started = time.perf_counter()
+    first = None
+    for event in relighter.run(RelightRequest(frames, probe=probe, rotation=30.0)):
+        if first is None and isinstance(event, Progress):
+            first = time.perf_counter() - started
+    out["first_preview_s"], out["relight_s"] = first, time.perf_counter() - started
+    full = rng.random((1, 256, 256, 3), dtype=np.float32)
+    started = time.perf_counter()
+    small = resize_frames(full, size, multiple=relighter.frame_multiple)
+    result = relighter.relight(RelightRequest(small, probe=probe, rotation=60.0))
+    upsample.guided_ratio_upsample(full, small, result.relit)
+    upsample.guided_ratio_upsample(full, small, result.albedo)
+    out["relight_256_s"] = time.perf_counter() - started
+    if preview:
+        from relight_core.preview import render_preview
+
+        render_preview(probe, 0.0)  # the first render opens the GL context
+        times = []
+        for angle in (10.0, 20.0, 30.0):
+            started = time.perf_counter()
+            render_preview(probe, angle)
+            times.append(time.perf_counter() - started)
+        out["light_preview_s"] = sorted(times)[1]
+    return {k: round(v, 3) if isinstance(v, float) else v for k, v in out.items()}
+
+
 def run_bench(quick: bool = False, out: Path | None = None, precision: str = "auto") -> dict:
     """Run every measurement, print a table and return the numbers.
 
@@ -153,9 +200,15 @@ def run_bench(quick: bool = False, out: Path | None = None, precision: str = "au
           f"released sampler {released}")
     params_7b = param_count(MODEL_PRESETS["unirelight-7b"].dit)
     print(f"unirelight-7b preset: {params_7b / 1e9:.3f} B parameters (meta device)")
+    waits = latency("tiny" if quick else "default", precision, preview=not quick)
+    print(f"latency ({waits['model']}, {waits['size']} px): load {waits['load_s']:.2f} s, warm-up "
+          f"{waits['warm_up_s']:.2f} s, first preview {waits['first_preview_s']:.2f} s, relight "
+          f"{waits['relight_s']:.2f} s (estimated {waits['estimate_s']:.2f} s), 256 px with full-resolution "
+          f"output {waits['relight_256_s']:.2f} s" +
+          (f", light preview {waits['light_preview_s']:.2f} s" if "light_preview_s" in waits else ""))
     peak_rss_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     print(f"peak resident memory: {peak_rss_mb:.0f} MB")
-    numbers = {"matmul_peak_gflops": {k: round(v, 1) for k, v in peaks.items()}, "matmul_size": sizes,
+    numbers = {"latency": waits, "matmul_peak_gflops": {k: round(v, 1) for k, v in peaks.items()}, "matmul_size": sizes,
                "precision": used, "precision_asked": precision, "threads": torch.get_num_threads(),
                "dit": rows, "evaluations": {"ours": ours, "released": released},
                "unirelight_7b_params": params_7b, "peak_rss_mb": round(peak_rss_mb)}

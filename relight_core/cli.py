@@ -228,7 +228,7 @@ def _run_media_command(args) -> int:
                   disable=None) as bar:
             for event in events:
                 if isinstance(event, Progress):
-                    bar.total = event.total_steps * event.num_chunks
+                    bar.total = event.evaluations * event.num_chunks
                     bar.update(1)
                 elif isinstance(event, ChunkDone):
                     bar.set_postfix(chunk=f"{event.chunk + 1}/{event.num_chunks}")

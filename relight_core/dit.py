@@ -11,7 +11,6 @@ clip-type embedding appended here. The blocks follow the released Cosmos-Predict
 from __future__ import annotations
 
 import math
-import re
 from dataclasses import dataclass
 
 import torch
@@ -419,60 +418,3 @@ def param_count(config: DiTConfig) -> int:
     with torch.device("meta"):
         model = JointDiT(config)
     return sum(p.numel() for p in model.parameters())
-
-
-#################################################################################
-#                Released checkpoint names (Cosmos-Predict1 GeneralDIT)         #
-#################################################################################
-
-def released_key_map() -> list[tuple[str, str]]:
-    """The rename table: (released GeneralDIT name regex, our name template), `\\1` = block index."""
-    table = [
-        (r"x_embedder\.proj\.1\.weight", "patch_embed.weight"),
-        (r"view_embeddings\.weight", "clip_type_embed.weight"),
-        (r"t_embedder\.1\.linear_([12])\.weight", r"t_embedder.linear_\1.weight"),
-        (r"affline_norm\.weight", "t_embedder.norm.weight"),
-        (r"final_layer\.linear\.weight", "final_layer.linear.weight"),
-        (r"final_layer\.adaLN_modulation\.1\.weight", "final_layer.modulation.down.weight"),
-        (r"final_layer\.adaLN_modulation\.2\.weight", "final_layer.modulation.up.weight"),
-    ]
-    # Released blocks are "FA-CA-MLP": sub-layer 0 self-attention, 1 cross-attention, 2 MLP.
-    sublayers = {"0": "self_attn", "1": "cross_attn", "2": "mlp"}
-    attention = {"to_q.0": "q_proj", "to_q.1": "q_norm", "to_k.0": "k_proj", "to_k.1": "k_norm",
-                 "to_v.0": "v_proj", "to_out.0": "out_proj"}
-    mlp = {"layer1": "fc1", "layer2": "fc2"}
-    block = r"blocks\.block(\d+)\.blocks\."
-    for index, ours in sublayers.items():
-        table.append((rf"{block}{index}\.adaLN_modulation\.1\.weight", rf"blocks.\1.{ours}_mod.down.weight"))
-        table.append((rf"{block}{index}\.adaLN_modulation\.2\.weight", rf"blocks.\1.{ours}_mod.up.weight"))
-        parts = mlp if ours == "mlp" else attention
-        inner = "block" if ours == "mlp" else r"block\.attn"
-        for released, part in parts.items():
-            table.append((rf"{block}{index}\.{inner}\.{re.escape(released)}\.weight",
-                          rf"blocks.\1.{ours}.{part}.weight"))
-    return table
-
-
-_RELEASED_KEY_MAP = [(re.compile(pattern), target) for pattern, target in released_key_map()]
-
-
-def released_to_ours(name: str) -> str | None:
-    """Our parameter name for a released GeneralDIT name, or None (buffers, extra state)."""
-    for pattern, target in _RELEASED_KEY_MAP:
-        match = pattern.fullmatch(name)
-        if match is not None:
-            return match.expand(target)
-    return None
-
-
-def convert_released_state_dict(state_dict: dict[str, torch.Tensor], prefix: str = "net."
-                                ) -> tuple[dict[str, torch.Tensor], list[str]]:
-    """Rename a released checkpoint's network weights to ours; also returns the keys left unmapped."""
-    converted, unmapped = {}, []
-    for name, tensor in state_dict.items():
-        ours = released_to_ours(name[len(prefix):] if prefix and name.startswith(prefix) else name)
-        if ours is None:
-            unmapped.append(name)
-        else:
-            converted[ours] = tensor
-    return converted, unmapped

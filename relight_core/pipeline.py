@@ -12,19 +12,18 @@ Videos longer than one chunk are cut into chunks of `spec.chunk_frames` frames t
 relit and albedo output over the shared frames (the tokenizer is causal, so the first
 `overlap` frames of a chunk encode to exactly its first latent frames), and the shared frames are
 cross-faded when stitching, so no seam shows.
+
+The request, its events and result live in `requests.py` (re-exported here), the thread that turns
+sampler callbacks into generator items in `streaming.py`, the device choice in `devices.py`.
 """
 
 from __future__ import annotations
 
 import hashlib
 import math
-import os
-import queue
-import threading
 import time
 from collections import OrderedDict
-from dataclasses import dataclass, field
-from typing import Callable, Iterator
+from typing import Iterator
 
 import numpy as np
 import torch
@@ -36,91 +35,12 @@ from relight_core.diffusion import SAMPLERS, ConditionedDenoiser, EDMPrecond, ge
 from relight_core.dit import LIGHTING_KEYS, NUM_CLIPS, network, pack_lighting
 from relight_core.errors import InputError
 from relight_core.precision import autocast, precision_name, resolve_precision
+from relight_core.requests import (MAX_SEED, MODES, ChunkDone, Event, Finished, Progress,  # noqa: F401 (re-exported)
+                                   RelightRequest, RelightResult)
+from relight_core.devices import free_memory, gb, resolve_device  # noqa: F401 (resolve_device re-exported)
+from relight_core.streaming import Stopped, stream
 
-MODES = ("relight", "albedo", "render", "random")
 CLIPS = NUM_CLIPS  # [input | relit | albedo]
-MAX_SEED = 2**63 - 1  # seeds are 0 … 2⁶³−1 (a signed 64-bit integer)
-
-
-# ---------------------------------------------------------------------------------------------
-# Requests and events
-# ---------------------------------------------------------------------------------------------
-
-@dataclass
-class RelightRequest:
-    """One relighting job. Frames are float32 [T,H,W,3] in [0,1] at the working resolution."""
-
-    frames: np.ndarray
-    fps: float | None = None
-    audio_path: str | None = None
-    audio_start: float = 0.0              # seconds into audio_path where the frames begin
-    mode: str = "relight"                 # relight | albedo | render | random
-    probe: torch.Tensor | np.ndarray | None = None  # linear lat-long [h,w,3]
-    rotation: float = lighting.DEFAULT_ROTATION
-    rotate_light: bool = False
-    sweep: tuple[float, float] = (0.0, 360.0)
-    intensity: float = 1.0
-    temperature: float = lighting.NEUTRAL_KELVIN  # the light's colour temperature, K (lower = warmer)
-    tint: float = 0.0                     # green (+) / magenta (−) shift of the light, Δuv within ±0.02
-    camera_pitch: float = 0.0             # degrees the camera looks up (lighting.camera_rotation)
-    camera_roll: float = 0.0              # degrees the camera is turned counter-clockwise about its view
-    albedo: np.ndarray | None = None      # [T,H,W,3] for mode="render"
-    # Linear panoramas already in the camera frame (the dataset's env*/ files): [H,W,3] for every
-    # frame or [T,H,W,3] per frame, any size (re-gridded to the frames'). Used as given, in place of
-    # probe/rotation/rotate_light/sweep; the intensity, temperature and tint still apply to it.
-    camera_probe: torch.Tensor | np.ndarray | None = None
-    steps: int | None = None              # None: the model's default
-    sampler: str | None = None            # None: the model's default
-    seed: int = 0
-    guidance: float = 0.0
-    should_stop: Callable[[], bool] | None = None
-
-
-@dataclass
-class Progress:
-    """One denoiser evaluation done."""
-
-    step: int                 # 1-based evaluation count within the chunk
-    total_steps: int          # evaluations per chunk
-    chunk: int                # 0-based
-    num_chunks: int
-    relit_preview: np.ndarray   # [H,W,3] in [0,1], cheap linear decode of the current x0
-    albedo_preview: np.ndarray
-    eta_s: float              # seconds left for the whole request
-
-
-@dataclass
-class ChunkDone:
-    """A chunk has been decoded; frames cover [start, start + len) of the video."""
-
-    chunk: int
-    num_chunks: int
-    start: int
-    relit: np.ndarray
-    albedo: np.ndarray
-
-
-@dataclass
-class RelightResult:
-    """The stitched output of a request."""
-
-    relit: np.ndarray          # [T,H,W,3] in [0,1]
-    albedo: np.ndarray
-    fps: float | None
-    audio_path: str | None
-    seed: int
-    mode: str
-    audio_start: float = 0.0
-    seconds: float = 0.0
-    info: dict = field(default_factory=dict)
-
-
-@dataclass
-class Finished:
-    result: RelightResult
-
-
-Event = Progress | ChunkDone | Finished
 
 
 # ---------------------------------------------------------------------------------------------
@@ -245,8 +165,8 @@ class Relighter:
         frames = f"{num_frames} frame{'s' if num_frames != 1 else ''}"
         largest = (f"; at most about {low * m} pixels on the long side fit" if low else
                    "; even the smallest size does not fit, so use fewer frames")
-        raise InputError(f"Working at {width}×{height} for {frames} needs about {_gb(need)} of memory, but "
-                         f"{where} {_gb(free)} free{largest}: {hint}.")
+        raise InputError(f"Working at {width}×{height} for {frames} needs about {gb(need)} of memory, but "
+                         f"{where} {gb(free)} free{largest}: {hint}.")
 
     def run(self, request: RelightRequest) -> Iterator[Event]:
         """Run a request, yielding Progress, ChunkDone and finally Finished events."""
@@ -309,17 +229,17 @@ class Relighter:
                     eta = elapsed / evals_done * (total_evals - evals_done)
                     relit_p, albedo_p = self._preview(info["denoised"], _t, height, width)
                     step = min(evals_done - _index * evals_per_chunk, evals_per_chunk)
-                    emit(Progress(step, evals_per_chunk, _index, len(chunks), relit_p, albedo_p, eta))
+                    emit(Progress(step, evals_per_chunk, _index, len(chunks), relit_p, albedo_p, eta, steps))
                     if request.should_stop is not None and request.should_stop():
-                        raise _Stopped
+                        raise Stopped
                     network_started = time.perf_counter()
 
                 with torch.no_grad(), self._autocast():
                     return sampler(_denoiser, _noise * sigmas[0], sigmas, callback=callback)
 
             try:
-                x0 = yield from _stream(work)
-            except _Stopped:
+                x0 = yield from stream(work)
+            except Stopped:
                 return
             relit_chunk, albedo_chunk = self._decode(x0, t, length)
             weights = crossfade_weights(overlap[0].shape[0]) if overlap is not None else None
@@ -538,66 +458,6 @@ class Relighter:
         return self._flops_per_eval(tokens) / throughput
 
 
-def resolve_device(device: str | torch.device | None) -> torch.device:
-    """The device to run on (None: cuda when available, else cpu); InputError for one that is absent or unknown."""
-    if device is None or str(device).strip() == "":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    try:
-        resolved = torch.device(str(device).strip())
-    except (RuntimeError, TypeError, ValueError):
-        raise InputError(f"'{device}' is not a device; use cpu, cuda or cuda:N.") from None
-    if resolved.type == "cpu":
-        return resolved
-    if resolved.type == "cuda":
-        if not torch.cuda.is_available():
-            raise InputError(f"The device '{device}' was asked for, but this machine has no usable CUDA GPU; "
-                             "run on cpu instead (--device cpu).")
-        count = torch.cuda.device_count()
-        if resolved.index is not None and resolved.index >= count:
-            raise InputError(f"There is no GPU {device}: this machine has {count} (cuda:0 to cuda:{count - 1}).")
-        return resolved
-    if resolved.type == "mps" and torch.backends.mps.is_available():
-        return resolved
-    raise InputError(f"The device '{device}' is not available here; use cpu or cuda.")
-
-
-def free_memory(device: torch.device) -> tuple[int, int | None]:
-    """(free host bytes, free bytes on the device or None when the device is the host)."""
-    host = None
-    try:
-        with open("/proc/meminfo") as f:
-            info = {line.split(":")[0]: int(line.split()[1]) * 1024 for line in f if ":" in line}
-        host = info.get("MemAvailable", info.get("MemFree"))
-    except (OSError, ValueError, IndexError):
-        pass
-    if host is None:
-        try:
-            host = os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
-        except (OSError, ValueError, AttributeError):
-            host = 8 << 30
-    for limit_file, usage_file in (("/sys/fs/cgroup/memory.max", "/sys/fs/cgroup/memory.current"),
-                                   ("/sys/fs/cgroup/memory/memory.limit_in_bytes",
-                                    "/sys/fs/cgroup/memory/memory.usage_in_bytes")):
-        try:  # a container's limit may be far below the machine's memory
-            with open(limit_file) as f:
-                limit = f.read().strip()
-            with open(usage_file) as f:
-                usage = int(f.read().strip())
-            if limit.isdigit() and int(limit) < 1 << 60:
-                host = min(host, max(0, int(limit) - usage))
-            break
-        except (OSError, ValueError):
-            continue
-    if device.type == "cuda":
-        free, _ = torch.cuda.mem_get_info(device)
-        return host, int(free)
-    return host, None
-
-
-def _gb(size: int) -> str:
-    return f"{size / 2**30:.1f} GB" if size < 10 * 2**30 else f"{size / 2**30:.0f} GB"
-
-
 def _tokenizer_in(tokenizer, dtype: torch.dtype):
     """The tokenizer set up for compute in `dtype`: a module keeps fp32 weights (autocast lowers them
     where it runs), a TorchScript one (Cosmos) is cast to `dtype` itself, whatever its config stored."""
@@ -606,46 +466,3 @@ def _tokenizer_in(tokenizer, dtype: torch.dtype):
     if hasattr(tokenizer, "set_dtype"):
         tokenizer.set_dtype(dtype)
     return tokenizer
-
-
-class _Stopped(Exception):
-    """Raised from the sampler callback when the caller asked to stop."""
-
-
-def _stream(work: Callable[[Callable[[Progress], None]], torch.Tensor]):
-    """Run `work(emit)` on a worker thread and yield what it emits; return its result.
-
-    Samplers report through a plain callback; a thread turns those calls into generator items
-    without the sampler knowing. Closing the generator stops the worker at its next callback.
-    """
-    events: queue.Queue = queue.Queue()
-    stop = threading.Event()
-    outcome: dict = {}
-
-    def emit(event: Progress) -> None:
-        if stop.is_set():
-            raise _Stopped
-        events.put(event)
-
-    def target() -> None:
-        try:
-            outcome["value"] = work(emit)
-        except BaseException as exc:  # re-raised on the caller's thread below
-            outcome["error"] = exc
-        finally:
-            events.put(_DONE)
-
-    worker = threading.Thread(target=target, name="relight-sampler", daemon=True)
-    worker.start()
-    try:
-        while (event := events.get()) is not _DONE:
-            yield event
-    finally:
-        stop.set()
-        worker.join()
-    if "error" in outcome:
-        raise outcome["error"]
-    return outcome["value"]
-
-
-_DONE = object()

@@ -4,7 +4,7 @@ The user downloads two things (we never fetch them): the UniRelight checkpoint (
 a PyTorch file holding the Cosmos GeneralDIT weights under a `net.` prefix) and the
 `Cosmos-Tokenize1-CV8x8x8-720p` folder (`encoder.jit`, `decoder.jit`, `mean_std.pt`). The checkpoint
 is read with `torch.load(weights_only=True)` — no pickled code runs — and memory-mapped, so a 7B
-checkpoint does not need its size in RAM. Its weights are renamed with `dit.released_to_ours`,
+checkpoint does not need its size in RAM. Its weights are renamed with `released_to_ours` (below),
 checked against our architecture, and written as `dit.safetensors` next to a `config.json` whose
 tokenizer spec points at the tokenizer folder.
 """
@@ -14,6 +14,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import pickle
+import re
 import zipfile
 from pathlib import Path
 
@@ -21,7 +22,7 @@ import torch
 from safetensors.torch import save_file
 
 from relight_core.checkpoint import CONFIG_FILE, DIT_FILE, MODEL_PRESETS
-from relight_core.dit import DiTConfig, JointDiT, convert_released_state_dict
+from relight_core.dit import DiTConfig, JointDiT
 from relight_core.errors import InputError
 
 # Names in a released checkpoint that carry no weights of ours (position tables, loss weights).
@@ -81,3 +82,60 @@ def import_released(checkpoint: str | Path, tokenizer_dir: str | Path, out: str 
                                    notes={"source": str(checkpoint.resolve())})
     (out / CONFIG_FILE).write_text(json.dumps(released.to_json(), indent=2))
     return out
+
+
+#################################################################################
+#                Released checkpoint names (Cosmos-Predict1 GeneralDIT)         #
+#################################################################################
+
+def released_key_map() -> list[tuple[str, str]]:
+    """The rename table: (released GeneralDIT name regex, our name template), `\\1` = block index."""
+    table = [
+        (r"x_embedder\.proj\.1\.weight", "patch_embed.weight"),
+        (r"view_embeddings\.weight", "clip_type_embed.weight"),
+        (r"t_embedder\.1\.linear_([12])\.weight", r"t_embedder.linear_\1.weight"),
+        (r"affline_norm\.weight", "t_embedder.norm.weight"),
+        (r"final_layer\.linear\.weight", "final_layer.linear.weight"),
+        (r"final_layer\.adaLN_modulation\.1\.weight", "final_layer.modulation.down.weight"),
+        (r"final_layer\.adaLN_modulation\.2\.weight", "final_layer.modulation.up.weight"),
+    ]
+    # Released blocks are "FA-CA-MLP": sub-layer 0 self-attention, 1 cross-attention, 2 MLP.
+    sublayers = {"0": "self_attn", "1": "cross_attn", "2": "mlp"}
+    attention = {"to_q.0": "q_proj", "to_q.1": "q_norm", "to_k.0": "k_proj", "to_k.1": "k_norm",
+                 "to_v.0": "v_proj", "to_out.0": "out_proj"}
+    mlp = {"layer1": "fc1", "layer2": "fc2"}
+    block = r"blocks\.block(\d+)\.blocks\."
+    for index, ours in sublayers.items():
+        table.append((rf"{block}{index}\.adaLN_modulation\.1\.weight", rf"blocks.\1.{ours}_mod.down.weight"))
+        table.append((rf"{block}{index}\.adaLN_modulation\.2\.weight", rf"blocks.\1.{ours}_mod.up.weight"))
+        parts = mlp if ours == "mlp" else attention
+        inner = "block" if ours == "mlp" else r"block\.attn"
+        for released, part in parts.items():
+            table.append((rf"{block}{index}\.{inner}\.{re.escape(released)}\.weight",
+                          rf"blocks.\1.{ours}.{part}.weight"))
+    return table
+
+
+_RELEASED_KEY_MAP = [(re.compile(pattern), target) for pattern, target in released_key_map()]
+
+
+def released_to_ours(name: str) -> str | None:
+    """Our parameter name for a released GeneralDIT name, or None (buffers, extra state)."""
+    for pattern, target in _RELEASED_KEY_MAP:
+        match = pattern.fullmatch(name)
+        if match is not None:
+            return match.expand(target)
+    return None
+
+
+def convert_released_state_dict(state_dict: dict[str, torch.Tensor], prefix: str = "net."
+                                ) -> tuple[dict[str, torch.Tensor], list[str]]:
+    """Rename a released checkpoint's network weights to ours; also returns the keys left unmapped."""
+    converted, unmapped = {}, []
+    for name, tensor in state_dict.items():
+        ours = released_to_ours(name[len(prefix):] if prefix and name.startswith(prefix) else name)
+        if ours is None:
+            unmapped.append(name)
+        else:
+            converted[ours] = tensor
+    return converted, unmapped

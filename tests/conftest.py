@@ -3,7 +3,8 @@
 import pytest
 import torch
 
-from relight_core.dit import JointDiT, released_to_ours
+from relight_core.dit import JointDiT
+from relight_core.released import released_to_ours
 from tests.factory import MINI, FakeCosmosDecoder, FakeCosmosEncoder, released_names
 
 

@@ -26,6 +26,9 @@ def test_quick_bench_reports_the_numbers(tmp_path, capsys):
     assert json.loads((tmp_path / "bench.json").read_text()) == json.loads(json.dumps(numbers))
     assert abs(numbers["unirelight_7b_params"] - 7e9) / 7e9 < 0.05
     assert numbers["evaluations"] == {"ours": 36, "released": 71}
+    waits = numbers["latency"]
+    assert waits["model"] == "tiny" and 0 < waits["first_preview_s"] <= waits["relight_s"]
+    assert all(waits[k] > 0 for k in ("load_s", "warm_up_s", "estimate_s", "relight_256_s"))
     # Both peaks are measured; the DiT runs in the precision the Relighter would pick here ...
     assert set(numbers["matmul_peak_gflops"]) == {"fp32", "bf16"}
     assert all(value > 0 for value in numbers["matmul_peak_gflops"].values())

@@ -9,9 +9,9 @@ from safetensors.torch import load_file, save_file
 
 from relight_core.dit import (
     ASSEMBLED_CHANNELS, CHANNELS, DIT_PRESETS, LIGHTING_CHANNELS, TOKEN_CHANNELS, DiTConfig, JointDiT,
-    assemble_inputs, convert_released_state_dict, pack_lighting, param_count, released_to_ours,
-    rms_norm_rope, rope_angles,
+    assemble_inputs, pack_lighting, param_count, rms_norm_rope, rope_angles,
 )
+from relight_core.released import convert_released_state_dict, released_to_ours
 
 TINY = DIT_PRESETS["tiny"]
 

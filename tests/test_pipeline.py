@@ -74,7 +74,8 @@ def test_relight_image_streams_previews_then_the_result(relighter, probe):
     events = _events(relighter, RelightRequest(_frames(), probe=probe, steps=3, seed=1))
     progress = [e for e in events if isinstance(e, Progress)]
     assert len(progress) == 4, "res2ab at guidance 0: steps + 1 denoiser evaluations"
-    assert [p.step for p in progress] == [1, 2, 3, 4]
+    assert [p.evaluation for p in progress] == [1, 2, 3, 4] and {p.evaluations for p in progress} == {4}
+    assert [p.step for p in progress] == [1, 2, 3, 3]  # as chosen: the clean-x0 call ends step 3
     assert all(p.relit_preview.shape == (32, 48, 3) and p.albedo_preview.shape == (32, 48, 3) for p in progress)
     assert progress[-1].eta_s == pytest.approx(0.0, abs=1e-6)
     assert isinstance(events[-1], Finished) and sum(isinstance(e, Finished) for e in events) == 1
@@ -96,6 +97,9 @@ def test_same_seed_same_output_other_seed_other_output(relighter, probe):
 def test_guidance_doubles_the_evaluations(relighter, probe):
     result = relighter.relight(RelightRequest(_frames(), probe=probe, steps=2, guidance=1.5))
     assert result.info["evaluations"] == 2 * 3
+    progress = [e for e in _events(relighter, RelightRequest(_frames(), probe=probe, steps=2, guidance=1.5))
+                if isinstance(e, Progress)]
+    assert [(p.evaluation, p.evaluations, p.step) for p in progress] == [(2, 6, 1), (4, 6, 2), (6, 6, 2)]
 
 
 def test_probe_rotation_changes_the_result(relighter, probe):

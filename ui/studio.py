@@ -382,8 +382,8 @@ class Studio:
             result = None
             for event in relighter.run(request):
                 if isinstance(event, Progress):
-                    done = (run_index * event.num_chunks + event.chunk) * event.total_steps + event.step
-                    total = len(seeds) * event.num_chunks * event.total_steps
+                    done = (run_index * event.num_chunks + event.chunk) * event.evaluations + event.evaluation
+                    total = len(seeds) * event.num_chunks * event.evaluations
                     yield RunOutputs(
                         status=status_html(done / total, _progress_text(event, run_index, len(seeds), run_seed)),
                         relit_image=self._save_preview(job, "relit-preview", event.relit_preview)
@@ -543,7 +543,7 @@ class Studio:
 
 
 def _progress_text(event: Progress, run_index: int, runs: int, seed: int) -> str:
-    parts = [f"Step {event.step} of {event.total_steps}"]
+    parts = [f"Step {event.step} of {event.steps or event.evaluations}"]
     if event.num_chunks > 1:
         parts.append(f"chunk {event.chunk + 1} of {event.num_chunks}")
     if runs > 1:

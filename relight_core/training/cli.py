@@ -84,7 +84,7 @@ def _train_tokenizer(args) -> int:
 
 def _train(args) -> int:
     from relight_core.checkpoint import MODEL_PRESETS
-    from relight_core.pipeline import resolve_device
+    from relight_core.devices import resolve_device
     from relight_core.training import distributed
     from relight_core.training.joint import DiTTrainConfig, train_dit
 

@@ -1,0 +1,106 @@
+"""What a `Relighter` takes and what it streams back: the request, its events and its result.
+
+    Progress(...)   after every denoiser evaluation, with a cheap preview of the current x0
+    ChunkDone(...)  when a chunk of a long video is decoded
+    Finished(...)   once, with the stitched result
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+import torch
+
+from relight_core import lighting
+
+MODES = ("relight", "albedo", "render", "random")
+MAX_SEED = 2**63 - 1  # seeds are 0 … 2⁶³−1 (a signed 64-bit integer)
+
+
+@dataclass
+class RelightRequest:
+    """One relighting job. Frames are float32 [T,H,W,3] in [0,1] at the working resolution."""
+
+    frames: np.ndarray
+    fps: float | None = None
+    audio_path: str | None = None
+    audio_start: float = 0.0              # seconds into audio_path where the frames begin
+    mode: str = "relight"                 # relight | albedo | render | random
+    probe: torch.Tensor | np.ndarray | None = None  # linear lat-long [h,w,3]
+    rotation: float = lighting.DEFAULT_ROTATION
+    rotate_light: bool = False
+    sweep: tuple[float, float] = (0.0, 360.0)
+    intensity: float = 1.0
+    temperature: float = lighting.NEUTRAL_KELVIN  # the light's colour temperature, K (lower = warmer)
+    tint: float = 0.0                     # green (+) / magenta (−) shift of the light, Δuv within ±0.02
+    camera_pitch: float = 0.0             # degrees the camera looks up (lighting.camera_rotation)
+    camera_roll: float = 0.0              # degrees the camera is turned counter-clockwise about its view
+    albedo: np.ndarray | None = None      # [T,H,W,3] for mode="render"
+    # Linear panoramas already in the camera frame (the dataset's env*/ files): [H,W,3] for every
+    # frame or [T,H,W,3] per frame, any size (re-gridded to the frames'). Used as given, in place of
+    # probe/rotation/rotate_light/sweep; the intensity, temperature and tint still apply to it.
+    camera_probe: torch.Tensor | np.ndarray | None = None
+    steps: int | None = None              # None: the model's default
+    sampler: str | None = None            # None: the model's default
+    seed: int = 0
+    guidance: float = 0.0
+    should_stop: Callable[[], bool] | None = None
+
+
+@dataclass
+class Progress:
+    """One denoiser evaluation done."""
+
+    evaluation: int           # 1-based network evaluation count within the chunk
+    evaluations: int          # network evaluations per chunk: steps + 1, twice that with guidance
+    chunk: int                # 0-based
+    num_chunks: int
+    relit_preview: np.ndarray   # [H,W,3] in [0,1], cheap linear decode of the current x0
+    albedo_preview: np.ndarray
+    eta_s: float              # seconds left for the whole request
+    steps: int = 0            # the sampling steps asked for (0: one per evaluation)
+
+    @property
+    def step(self) -> int:
+        """The sampling step (1 … steps) this evaluation belongs to, as a person counts them: the
+        final clean-x0 evaluation completes the last step."""
+        if self.steps <= 0:
+            return self.evaluation
+        per_step = max(1, self.evaluations // (self.steps + 1))  # 1, or 2 with guidance
+        return min(self.steps, -(-self.evaluation // per_step))
+
+
+@dataclass
+class ChunkDone:
+    """A chunk has been decoded; frames cover [start, start + len) of the video."""
+
+    chunk: int
+    num_chunks: int
+    start: int
+    relit: np.ndarray
+    albedo: np.ndarray
+
+
+@dataclass
+class RelightResult:
+    """The stitched output of a request."""
+
+    relit: np.ndarray          # [T,H,W,3] in [0,1]
+    albedo: np.ndarray
+    fps: float | None
+    audio_path: str | None
+    seed: int
+    mode: str
+    audio_start: float = 0.0
+    seconds: float = 0.0
+    info: dict = field(default_factory=dict)
+
+
+@dataclass
+class Finished:
+    result: RelightResult
+
+
+Event = Progress | ChunkDone | Finished
