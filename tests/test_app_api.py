@@ -209,3 +209,15 @@ def test_share_falls_back_to_local_when_the_tunnel_is_unreachable(tmp_path, caps
                                                   api_name="/light_preview")
     finally:
         demo.close()
+
+
+def test_progress_counts_the_steps_chosen_and_the_whole_jobs_time():
+    from relight_core.pipeline import Progress
+    from ui.studio import _progress_text
+
+    blank = np.zeros((2, 2, 3), np.float32)
+    last = Progress(21, 21, 0, 1, blank, blank, eta_s=0.0, steps=20)  # the final clean-x0 evaluation
+    assert _progress_text(last, 0, 1, 7).startswith("Step 20 of 20 · ")
+    # Random illuminations: seed 2 of 4 nearly done, two more to come: the time left covers them.
+    text = _progress_text(Progress(3, 6, 0, 1, blank, blank, eta_s=1.0, steps=5), 1, 4, 8, eta_s=125.0)
+    assert text == "Step 3 of 5 · seed 8 (2 of 4) · about 2 min 05 s left"

@@ -365,7 +365,7 @@ class Studio:
         middle = frames.shape[0] // 2
         input_still = self._save(job, "input", shown[middle:middle + 1], None, audio, False)
         input_clip = self._save(job, "input", shown, loaded.fps, audio, True) if is_video else None
-        yield RunOutputs(status=status_html(0.0, "Starting…"), input_image=input_still, input_video=input_clip,
+        yield RunOutputs(status=status_html(0.0, "Starting: preparing the input and the light…"), input_image=input_still, input_video=input_clip,
                          relit_image=CLEAR, albedo_image=CLEAR, relit_video=CLEAR, albedo_video=CLEAR,
                          compare=CLEAR_COMPARE, downloads=CLEAR, seeds=[] if mode == "random" else None).values()
 
@@ -380,12 +380,17 @@ class Studio:
                 sampler=sampler, seed=run_seed, guidance=guidance, should_stop=stop.is_set)
             relit_so_far = np.zeros((0, *frames.shape[1:]), np.float32)  # finished chunks, stitched
             result = None
+            seed_started = time.monotonic()
             for event in relighter.run(request):
                 if isinstance(event, Progress):
                     done = (run_index * event.num_chunks + event.chunk) * event.evaluations + event.evaluation
                     total = len(seeds) * event.num_chunks * event.evaluations
+                    # The whole job's time left: this run's, plus each run still to come at this one's pace.
+                    per_run = time.monotonic() - seed_started + event.eta_s
+                    eta = event.eta_s + (len(seeds) - run_index - 1) * per_run
                     yield RunOutputs(
-                        status=status_html(done / total, _progress_text(event, run_index, len(seeds), run_seed)),
+                        status=status_html(done / total, _progress_text(event, run_index, len(seeds), run_seed,
+                                                                        eta)),
                         relit_image=self._save_preview(job, "relit-preview", event.relit_preview)
                         if view.relit else None,
                         albedo_image=self._save_preview(job, "albedo-preview", event.albedo_preview)
@@ -402,6 +407,9 @@ class Studio:
             if result is None:  # stopped
                 yield RunOutputs(status=status_html(0.0, "Stopped.", "stopped")).values()
                 return
+            yield RunOutputs(status=status_html(
+                (run_index + 1) / len(seeds), "Writing the results" +
+                (" at the input's full resolution…" if full is not None else "…"))).values()
             if full is not None:  # the model's size → the input's, by guided ratio transfer (upsample.py)
                 result = replace(result, relit=guided_ratio_upsample(full, frames, result.relit),
                                  albedo=guided_ratio_upsample(full, frames, result.albedo))
@@ -542,13 +550,14 @@ class Studio:
         return files
 
 
-def _progress_text(event: Progress, run_index: int, runs: int, seed: int) -> str:
+def _progress_text(event: Progress, run_index: int, runs: int, seed: int, eta_s: float | None = None) -> str:
+    """What the bar says: the step of the steps chosen, the chunk and the seed, and the whole job's time left."""
     parts = [f"Step {event.step} of {event.steps or event.evaluations}"]
     if event.num_chunks > 1:
         parts.append(f"chunk {event.chunk + 1} of {event.num_chunks}")
     if runs > 1:
         parts.append(f"seed {seed} ({run_index + 1} of {runs})")
-    parts.append(f"about {_duration(event.eta_s)} left")
+    parts.append(f"about {_duration(event.eta_s if eta_s is None else eta_s)} left")
     return " · ".join(parts)
 
 
