@@ -14,6 +14,7 @@ from relight_core.dit import CHANNELS, DiTConfig, JointDiT, assemble_inputs, cha
 from relight_core.errors import InputError
 from relight_core.pipeline import Relighter, RelightRequest
 from relight_core.tokenizer import PixelTokenizer, build_tokenizer
+from relight_core.training.recipe import Recipe
 from relight_core.training.fast import FastConfig, make_batch, merge_shards, train
 from relight_core.training.pack import load_pack, write_pack
 
@@ -135,3 +136,30 @@ def test_fast_training_exports_a_model_the_relighter_runs(tmp_path):
     result = relighter.relight(RelightRequest(frames=frames, probe=np.ones((16, 32, 3), np.float32), steps=2))
     assert result.relit.shape == frames.shape and result.info["chunks"] == 3
     assert np.isfinite(result.albedo).all()
+
+
+def test_a_zero_head_residual_model_returns_its_input_and_training_resumes(tmp_path):
+    root = _write_dataset(tmp_path / "data")
+    write_pack(root, "train", tmp_path / "p.npz", lighting_size=8)
+    base = dict(pack=tmp_path / "p.npz", device="cpu", batch=2, width=32, depth=1, num_heads=2, log_every=1,
+                eval_items=2, eval_steps=1, warmup=1, checkpoint_every_minutes=0.0)
+    first = train(FastConfig(out=tmp_path / "first", minutes=0.02, **base))
+    # Continue it as a residual model with its output layer zeroed, and a learning rate of 0: the
+    # model then is exactly "return the input" (relit and albedo), whatever its other weights.
+    residual = FastConfig(out=tmp_path / "res", minutes=0.01, init=tmp_path / "first" / "model", zero_head=True,
+                          lr=0.0, recipe=Recipe(residual=True, p_sigma_max=0.75), **base)
+    train(residual)
+    spec, dit, tok = load_model(tmp_path / "res" / "model")
+    assert spec.residual and spec.steps == 1
+    frames = np.random.default_rng(2).random((1, 32, 32, 3)).astype(np.float32)
+    result = Relighter(spec, dit, tok).relight(RelightRequest(frames=frames, probe=np.ones((16, 32, 3), np.float32)))
+    np.testing.assert_allclose(result.relit, frames, atol=0.02)
+    np.testing.assert_allclose(result.albedo, frames, atol=0.02)
+    plain, _, _ = load_model(tmp_path / "first" / "model")
+    assert not plain.residual
+    # The first run left a checkpoint (weights, EMA, optimizer, generator, step, time used): started
+    # again on the same folder it resumes there and, its time spent, stops without a new step.
+    again = train(FastConfig(out=tmp_path / "first", minutes=0.02, **base))
+    log = [json.loads(line) for line in (tmp_path / "first" / "log.jsonl").read_text().splitlines()]
+    assert [r["step"] for r in log if r.get("event") == "resume"] == [first["steps"]]
+    assert again["steps"] == first["steps"]

@@ -249,6 +249,13 @@ def train(config: FastConfig) -> dict:
         step = int(resumed["step"])
         write(event="resume", step=step, elapsed=round(float(resumed["elapsed"]), 1))
     last_checkpoint = time.time()
+
+    def save_checkpoint():
+        partial_path = checkpoint_path.with_suffix(".partial")
+        torch.save({"dit": dit.state_dict(), "ema": ema.shadow, "optimizer": optimizer.state_dict(),
+                    "generator": generator.get_state(), "step": step,
+                    "elapsed": time.time() - train_started}, partial_path)
+        partial_path.replace(checkpoint_path)  # atomic: a kill mid-write keeps the previous one
     n = len(pack["rgb"])
     last_export = time.time()
     notes = {"recipe": asdict(config.recipe), "batch": config.batch, "lr": config.lr}
@@ -291,15 +298,12 @@ def train(config: FastConfig) -> dict:
             write(step=step, loss=round(mean, 5), lr=lr, grad_norm=round(float(grad_norm), 4),
                   seconds=round(time.time() - train_started, 1))
         if time.time() - last_checkpoint > config.checkpoint_every_minutes * 60:
-            partial_path = checkpoint_path.with_suffix(".partial")
-            torch.save({"dit": dit.state_dict(), "ema": ema.shadow, "optimizer": optimizer.state_dict(),
-                        "generator": generator.get_state(), "step": step,
-                        "elapsed": time.time() - train_started}, partial_path)
-            partial_path.replace(checkpoint_path)
+            save_checkpoint()
             last_checkpoint = time.time()
         if time.time() - last_export > config.export_every_minutes * 60:
             export(out, ema.copy_to(ema_model), config, size, lighting_size, {**notes, "steps": step})
             last_export = time.time()
+    save_checkpoint()  # a later run on the same --out with more --minutes continues from here
     train_seconds = time.time() - train_started
     ema.copy_to(ema_model).eval()
     residual = config.recipe.residual
