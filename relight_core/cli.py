@@ -17,6 +17,7 @@ from relight_core.arguments import (MAX_INTENSITY, MAX_ROTATION_DEG, MAX_SEED, P
                                     finite_float, int_range, row_list, seed, seed_list, terminate_as_interrupt)
 from relight_core.data.cli import add_data_commands, positive_int
 from relight_core.errors import InputError
+from relight_core.paths import check_path
 from relight_core.evaluation.cli import add_evaluation_commands
 from relight_core.training.cli import add_training_commands
 
@@ -210,6 +211,7 @@ def _media_job(args):
 
 
 def _run_media_command(args) -> int:
+    check_path(args.input)  # a missing input is said at once, before the heavy imports
     from tqdm import tqdm
 
     from relight_core.jobs import load_inputs, plan_job, write_job

@@ -14,6 +14,7 @@ import numpy as np
 from PIL import Image, UnidentifiedImageError
 
 from relight_core.errors import InputError
+from relight_core.paths import check_path, name  # noqa: F401 (re-exported)
 
 MAX_SIDE = 8192  # pixels per side, checked from headers before decoding
 
@@ -31,21 +32,6 @@ class Media:
     is_video: bool
     audio_path: str | None = None  # source file to copy the audio stream from
     audio_start: float = 0.0  # seconds into audio_path where frames[0] is shown
-
-
-def name(path: str) -> str:
-    """The file's name, as messages show it (never the server-side folder)."""
-    return os.path.basename(path)
-
-
-def check_path(path) -> str:
-    """`path` as a string; InputError unless it is an existing, non-empty file."""
-    path = os.fspath(path)
-    if not os.path.isfile(path):
-        raise InputError(f"The file {path} does not exist; pick an existing image or video.")
-    if os.path.getsize(path) == 0:
-        raise InputError(f"The file {name(path)} is empty; pick an image or video with content.")
-    return path
 
 
 def check_side(path: str, width: int, height: int) -> None:
