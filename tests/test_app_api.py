@@ -213,7 +213,7 @@ def test_share_falls_back_to_local_when_the_tunnel_is_unreachable(tmp_path, caps
 
 def test_progress_counts_the_steps_chosen_and_the_whole_jobs_time():
     from relight_core.pipeline import Progress
-    from ui.studio import _progress_text
+    from ui.views import _progress_text
 
     blank = np.zeros((2, 2, 3), np.float32)
     last = Progress(21, 21, 0, 1, blank, blank, eta_s=0.0, steps=20)  # the final clean-x0 evaluation

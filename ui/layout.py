@@ -10,18 +10,8 @@ import gradio as gr
 
 from relight_core.diffusion import SAMPLERS
 from relight_core.lighting import DEFAULT_ROTATION, MAX_PITCH_DEG, MAX_TINT, NEUTRAL_KELVIN
-from ui.studio import (
-    CLEAR,
-    CLEAR_COMPARE,
-    MODE_VIEWS,
-    MODES,
-    RANDOM_MODE,
-    VIDEO_SUFFIXES,
-    RunOutputs,
-    Studio,
-    probe_choices,
-    status_html,
-)
+from ui.studio import VIDEO_SUFFIXES, Studio, probe_choices
+from ui.views import CLEAR, CLEAR_COMPARE, MODE_VIEWS, MODES, RANDOM_MODE, RunOutputs, status_html
 
 INPUT_TYPES = [".png", ".jpg", ".jpeg", ".webp", ".exr", ".mp4", ".mov", ".webm"]
 PROBE_TYPES = [".hdr", ".exr"]
@@ -267,7 +257,7 @@ def _show_video_row(path: str | None):
 
 
 def _mode_layout(mode: str):
-    """Show only what `mode` uses: its controls, its results, with its labels (ui.studio.MODE_VIEWS)."""
+    """Show only what `mode` uses: its controls, its results, with its labels (ui.views.MODE_VIEWS)."""
     view = MODE_VIEWS.get(mode, MODE_VIEWS["Relight"])
     random = mode == RANDOM_MODE
     return (gr.update(visible=random), gr.update(visible=view.uses_probe), gr.update(label=view.input_label),
