@@ -260,3 +260,23 @@ def awake(relighter):
             if not parameter.any():
                 parameter.copy_(0.05 * torch.randn(parameter.shape, generator=generator))
     return relighter
+
+
+def make_frameless_mp4(path: Path, width: int = 16, height: int = 16) -> Path:
+    """An mp4 container with a video stream and no frames at all."""
+    with av.open(str(path), "w") as container:
+        stream = container.add_stream("libx264", rate=24)
+        stream.width, stream.height, stream.pix_fmt = width, height, "yuv420p"
+        container.start_encoding()
+    return path
+
+
+def make_audio_only_mp4(path: Path) -> Path:
+    """An mp4 with a 0.1 s silent AAC track and no video stream."""
+    with av.open(str(path), "w") as container:
+        sound = container.add_stream("aac", rate=44100, layout="mono")
+        frame = av.AudioFrame.from_ndarray(np.zeros((1, 4410), np.float32), format="flt", layout="mono")
+        frame.sample_rate = 44100
+        for packet in [*sound.encode(frame), *sound.encode(None)]:
+            container.mux(packet)
+    return path

@@ -13,7 +13,6 @@ import struct
 import zlib
 from pathlib import Path
 
-import av
 import cv2
 import numpy as np
 import pytest
@@ -22,7 +21,8 @@ from PIL import Image
 
 from relight_core import media
 from relight_core.cli import main
-from tests.factory import make_mp4, make_png, make_sun_probe, relight_args, run_job, start_studio, write_exr
+from tests.factory import (make_audio_only_mp4, make_frameless_mp4, make_mp4, make_png, make_sun_probe, relight_args,
+                           run_job, start_studio, write_exr)
 
 FAST = ["--model", "tiny", "--steps", "1", "--size", "48"]
 
@@ -85,17 +85,8 @@ def make_bad_media(d: Path) -> dict[str, Path]:
     for name, data in files.items():
         (d / name).write_bytes(data)
         out[name] = d / name
-    with av.open(str(d / "zero-frames.mp4"), "w") as container:
-        stream = container.add_stream("libx264", rate=12)
-        stream.width, stream.height, stream.pix_fmt = 48, 32, "yuv420p"
-        container.start_encoding()
-    with av.open(str(d / "audio-only.mp4"), "w") as container:
-        sound = container.add_stream("aac", rate=44100, layout="mono")
-        frame = av.AudioFrame.from_ndarray(np.zeros((1, 4410), np.float32), format="flt", layout="mono")
-        frame.sample_rate = 44100
-        for packet in [*sound.encode(frame), *sound.encode(None)]:
-            container.mux(packet)
-    out["zero-frames.mp4"], out["audio-only.mp4"] = d / "zero-frames.mp4", d / "audio-only.mp4"
+    out["zero-frames.mp4"] = make_frameless_mp4(d / "zero-frames.mp4", 48, 32)
+    out["audio-only.mp4"] = make_audio_only_mp4(d / "audio-only.mp4")
     (d / "folder.png").mkdir()
     out["folder.png"] = d / "folder.png"
     return out

@@ -27,6 +27,7 @@ from relight_core.media import (
     save_video,
     srgb_to_linear,
 )
+from tests.factory import make_audio_only_mp4, make_frameless_mp4
 
 
 def gradient(h, w, t=0) -> np.ndarray:
@@ -307,16 +308,8 @@ def bad_files(tmp_path) -> dict[str, str]:
     ihdr = struct.pack(">IIBBBBB", 20000, 20000, 8, 0, 0, 0, 0)
     bomb = b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IDAT", zlib.compress(b"\0" * 64)) + chunk(b"IEND", b"")
     (tmp_path / "bomb.png").write_bytes(bomb)
-    with av.open(str(tmp_path / "zero.mp4"), "w") as out:  # an mp4 container with no frames at all
-        stream = out.add_stream("libx264", rate=24)
-        stream.width, stream.height, stream.pix_fmt = 16, 16, "yuv420p"
-        out.start_encoding()
-    with av.open(str(tmp_path / "audio_only.mp4"), "w") as out:
-        sound = out.add_stream("aac", rate=44100, layout="mono")
-        frame = av.AudioFrame.from_ndarray(np.zeros((1, 4410), np.float32), format="flt", layout="mono")
-        frame.sample_rate = 44100
-        for packet in [*sound.encode(frame), *sound.encode(None)]:
-            out.mux(packet)
+    make_frameless_mp4(tmp_path / "zero.mp4")  # an mp4 container with no frames at all
+    make_audio_only_mp4(tmp_path / "audio_only.mp4")
     return {
         "trunc.png": "truncated",
         "text.mp4": "not a supported",
