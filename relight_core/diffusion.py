@@ -198,6 +198,8 @@ class ConditionedDenoiser:
     EDM denoiser x_cond · c_in(σ_aug) / c_in(σ) on those frames. The wrapped denoiser also receives
     `condition_mask` (the network's condition-mask channel is this same mask).
     Sampling σ must stay above `augment_sigma` (the default σ_min 0.002 does).
+    With `residual=True` the frames to generate are handed over as offsets from the input clip and
+    the input is added back to x0 (`residual_base`): EDM on relit − input and albedo − input.
     """
 
     def __init__(self, denoiser: Denoiser,

@@ -4,6 +4,7 @@
 # lost); the model folder and the training log go where the flags say.
 #   SCENES=2000 MINUTES=8 bash scripts/train_default.sh            # → runs/default-pixel/model
 #   INIT=models/default MINUTES=30 bash scripts/train_default.sh   # continue from the shipped weights
+#   EXTRA="--residual --p-sigma-max 0.75" bash scripts/train_default.sh   # the shipped residual model's recipe
 set -euo pipefail
 cd "$(dirname "$0")/.."
 cache=${UNIRELIGHT_CACHE:-$HOME/.cache/unirelight-studio}
@@ -20,4 +21,4 @@ workers=$(nproc)
 "$python" -m relight_core.training.pack --data "$cache/data" --split train --out "$cache/train.npz"
 "$python" -m relight_core.training.pack --data "$cache/data" --split test --out "$cache/test.npz"
 "$python" -m relight_core.training.fast --pack "$cache/train.npz" --test-pack "$cache/test.npz" \
-  --out "$out" --device auto --minutes "$minutes" ${INIT:+--init "$INIT"} ${COMPILE:+--compile}
+  --out "$out" --device auto --minutes "$minutes" ${INIT:+--init "$INIT"} ${COMPILE:+--compile} ${EXTRA:-}

@@ -13,7 +13,11 @@ Writes `<out>/model/` (config.json + dit.safetensors, the EMA in bf16; also as â
 `<out>/dit-shard-*.safetensors` + `<out>/config.json` that `merge_shards` joins, rewritten every
 `--export-every-minutes`), `<out>/log.jsonl` and, at the end, sampled
 PSNR on train and test items (`<out>/samples.json`). `--init DIR` starts from a model folder's
-DiT (to continue from the shipped weights).
+DiT (to continue from the shipped weights; `--zero-head` zeroes its output layer). `--residual`
+trains relit/albedo as offsets from the input (`ModelSpec.residual`), `--p-sigma-max` trains a
+share of samples at Ïƒ = 80 (the one-step sampler's call). `<out>/checkpoint.pt` (every
+`--checkpoint-every-minutes` and at the end) makes a run started again on the same `--out` resume
+exactly where it stopped.
 """
 
 from __future__ import annotations
