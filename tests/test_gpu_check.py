@@ -128,7 +128,7 @@ def test_the_check_runs_on_this_gpu_with_the_tiny_preset():
 
 
 @needs_gpu
-def test_the_check_runs_a_released_folder_on_this_gpu(released_files, tmp_path):  # noqa: F811
+def test_the_check_runs_a_released_folder_on_this_gpu(released_files, tmp_path):
     """The released path (Cosmos JIT tokenizer on the GPU, 57-frame single chunk) in miniature."""
     checkpoint, tokenizer, _ = released_files
     folder = import_released(checkpoint, tokenizer, tmp_path / "mini", dit_config=MINI)

@@ -18,6 +18,7 @@ import gradio as gr
 import numpy as np
 
 from relight_core import lighting, media, preview
+from relight_core.colour import colour_science
 from relight_core.errors import InputError
 from relight_core.pipeline import ChunkDone, Finished, Progress, Relighter, RelightRequest
 from relight_core.upsample import guided_ratio_upsample
@@ -62,6 +63,7 @@ class Studio:
         self._model_lock = threading.Lock()
         self._stops: dict[str, threading.Event] = {}
         self.relighter(config.model)  # load at start: the first request should not wait for it
+        colour_science()  # imported now (~2 s), not at the first EXR download or colour change
 
     # -- model ----------------------------------------------------------------------------------
 
