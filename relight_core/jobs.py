@@ -13,8 +13,8 @@ import numpy as np
 import torch
 
 from relight_core import lighting, media
+from relight_core.outputs import result_clips, write_outputs
 from relight_core.pipeline import Event, Finished, Relighter, RelightRequest, RelightResult
-from relight_core.upsample import guided_ratio_upsample
 
 PROBE_MODES = ("relight", "render")  # the modes that read a probe; the others ignore one
 
@@ -100,32 +100,16 @@ def plan_job(job: MediaJob, relighter: Relighter, inputs: JobInputs) -> JobPlan:
 
 def output_frames(job: MediaJob, source: media.Media, frames: np.ndarray, result: RelightResult
                   ) -> dict[str, np.ndarray]:
-    """The clips a job writes (by name), at the input's resolution unless the job is raw."""
-    if job.mode == "albedo":
-        outputs = {"albedo": result.albedo}
-    elif job.mode == "random":
-        outputs = {"relit": result.relit}
-    else:
-        outputs = {"relit": result.relit, "albedo": result.albedo}
-    if job.raw:
-        return outputs
-    # The model's size → the input's, by guided ratio transfer (upsample.py).
-    return {name: guided_ratio_upsample(source.frames, frames, out) for name, out in outputs.items()}
+    """The clips a job writes (by name, `outputs.MODE_OUTPUTS`), at the input's resolution unless the
+    job is raw."""
+    return result_clips(result, job.mode, frames, None if job.raw else source.frames)
 
 
-def save_outputs(outputs: dict[str, np.ndarray], source: media.Media, folder: Path, prefix: str = ""
+def save_outputs(clips: dict[str, np.ndarray], source: media.Media, folder: Path, prefix: str = ""
                  ) -> list[Path]:
     """Write each clip as `<prefix><name>.mp4` (videos, with the source's audio) or `.png` (images)."""
-    written = []
-    for name, out in outputs.items():
-        if source.is_video:
-            path = folder / f"{prefix}{name}.mp4"
-            media.save_video(path, out, source.fps, audio_from=source.audio_path, audio_start=source.audio_start)
-        else:
-            path = folder / f"{prefix}{name}.png"
-            media.save_image(path, out[0])
-        written.append(path)
-    return written
+    return list(write_outputs(clips, folder, source.is_video, source.fps, source.audio_path, source.audio_start,
+                              prefix).values())
 
 
 def finished_result(label: str, events: Iterable[Event]) -> RelightResult:

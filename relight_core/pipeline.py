@@ -14,7 +14,8 @@ relit and albedo output over the shared frames (the tokenizer is causal, so the 
 cross-faded when stitching, so no seam shows.
 
 The request, its events and result live in `requests.py` (re-exported here), the thread that turns
-sampler callbacks into generator items in `streaming.py`, the device choice in `devices.py`.
+sampler callbacks into generator items in `streaming.py`, the device choice in `devices.py`, the
+time and memory estimates in `costs.py`.
 """
 
 from __future__ import annotations
@@ -31,24 +32,24 @@ import torch
 from relight_core import lighting
 from relight_core.checkpoint import ModelSpec, load_model, resolve_model
 from relight_core.chunking import crossfade_weights, pad_to_valid, plan_chunks, stitch
+from relight_core.costs import CostModel
 from relight_core.diffusion import SAMPLERS, ConditionedDenoiser, EDMPrecond, get_sigmas_karras, guided
 from relight_core.dit import LIGHTING_KEYS, NUM_CLIPS, network, pack_lighting
 from relight_core.errors import InputError
 from relight_core.precision import autocast, precision_name, resolve_precision
 from relight_core.requests import (MAX_SEED, MODES, ChunkDone, Event, Finished, Progress,  # noqa: F401 (re-exported)
                                    RelightRequest, RelightResult)
-from relight_core.devices import free_memory, gb, resolve_device  # noqa: F401 (resolve_device re-exported)
+from relight_core.devices import resolve_device  # noqa: F401 (re-exported)
 from relight_core.streaming import Stopped, stream
-
-CLIPS = NUM_CLIPS  # [input | relit | albedo]
 
 
 # ---------------------------------------------------------------------------------------------
 # The pipeline
 # ---------------------------------------------------------------------------------------------
 
-class Relighter:
-    """The UniRelight joint model behind one streaming API; see the module docstring."""
+class Relighter(CostModel):
+    """The UniRelight joint model behind one streaming API; see the module docstring (its time and
+    memory estimates: `costs.CostModel`)."""
 
     def __init__(self, spec: ModelSpec, dit, tokenizer, device: str | torch.device = "cpu",
                  precision: str | None = None):
@@ -94,80 +95,6 @@ class Relighter:
                 return event.result
         raise InputError("The job was stopped before it finished.")
 
-    def estimate_seconds(self, num_frames: int, height: int, width: int, steps: int | None = None) -> float:
-        """Rough wall time of a request, from a measured (or assumed) cost per token."""
-        steps = steps or self.spec.steps
-        chunks = plan_chunks(num_frames, self.spec.chunk_frames, self.spec.overlap_frames)
-        t = self.tokenizer.latent_frames(min(num_frames, self.spec.chunk_frames)) if num_frames > 1 else 1
-        tokens = CLIPS * t * (height // self.frame_multiple) * (width // self.frame_multiple)
-        per_eval = self._seconds_per_eval_at(tokens)
-        overhead = (self._overhead_per_pixel or 0.0) * num_frames * height * width  # load, light, decode
-        return len(chunks) * (steps + 1) * per_eval + overhead
-
-    def warm_up(self) -> float:
-        """Two small real runs (a grey image at the model's size up to 256 px, one step): the first pays
-        the one-off costs so that the first request does not, the second measures this machine's speed
-        for the estimates; returns their seconds."""
-        side = min(self.spec.size, 256) // self.frame_multiple * self.frame_multiple or self.frame_multiple
-        frames = np.full((1, side, side, 3), 0.5, dtype=np.float32)
-        probe = torch.ones(16, 32, 3)
-        return sum(self.relight(RelightRequest(frames, probe=probe, steps=1, rotation=angle)).seconds
-                   for angle in (0.0, 90.0))  # two rotations: the second run encodes its lighting too
-
-    def memory_estimate(self, num_frames: int, height: int, width: int, guidance: bool = False
-                        ) -> tuple[int, int]:
-        """Rough peak bytes of a request at this working size: (host arrays, model activations).
-
-        Host: the clip's float32 frames, outputs and copies (≈ 6 arrays) plus one chunk's lighting
-        panoramas and encodings (≈ 8). Model (on its device): the tokenizer's widest full-resolution
-        stage (≈ 9 live tensors of its first width at H/2 × W/2, both output clips at once) and the DiT's
-        ≈ (mlp_ratio + 12) float32 tensors of tokens × width (twice with guidance). Attention runs
-        through fused kernels, linear in the token count. Measured peaks (CPU, fp32) are within 15 %:
-        tiny at 2048 px 0.94 GB, the default model at 1024 px 0.79 GB.
-        """
-        pixels = height * width
-        chunk = min(num_frames, self.spec.chunk_frames)
-        host = 6 * 12 * pixels * num_frames + 8 * 12 * pixels * chunk
-        config = getattr(self.tokenizer, "config", None)
-        first_width = getattr(config, "channels", (128,))[0]  # 128 for tokenizers that do not say
-        tokenizer = 2 * 9 * first_width * (pixels // 4) * 4 * chunk
-        t = self.tokenizer.latent_frames(chunk) if num_frames > 1 else 1
-        tokens = CLIPS * t * max(1, height // self.frame_multiple) * max(1, width // self.frame_multiple)
-        dit = tokens * self.spec.dit.width * (self.spec.dit.mlp_ratio + 12) * 4 * (2 if guidance else 1)
-        return int(host), int(tokenizer + dit)
-
-    def check_memory(self, num_frames: int, height: int, width: int, guidance: bool = False,
-                     hint: str = "choose a smaller working size or fewer frames") -> None:
-        """Raise InputError, before anything is allocated, when a request cannot fit in this machine's memory."""
-        host_free, device_free = free_memory(self.device)
-
-        def fits(h: int, w: int) -> bool:
-            host, model = self.memory_estimate(num_frames, h, w, guidance)
-            if device_free is None:  # the model runs in host memory too
-                return host + model <= host_free
-            return host <= host_free and model <= device_free
-
-        if fits(height, width):
-            return
-        host, model = self.memory_estimate(num_frames, height, width, guidance)
-        need, free = (host + model, host_free) if device_free is None else \
-            ((model, device_free) if model > device_free else (host, host_free))
-        where = "this machine has" if device_free is None or need == host else f"{self.device} has"
-        m, long_side = self.frame_multiple, max(height, width)
-        low, high = 0, long_side // m  # largest long side (in multiples of m) that fits, same aspect
-        while low < high:
-            mid = (low + high + 1) // 2
-            scale = mid * m / long_side
-            if fits(max(m, round(height * scale / m) * m), max(m, round(width * scale / m) * m)):
-                low = mid
-            else:
-                high = mid - 1
-        frames = f"{num_frames} frame{'s' if num_frames != 1 else ''}"
-        largest = (f"; at most about {low * m} pixels on the long side fit" if low else
-                   "; even the smallest size does not fit, so use fewer frames")
-        raise InputError(f"Working at {width}×{height} for {frames} needs about {gb(need)} of memory, but "
-                         f"{where} {gb(free)} free{largest}: {hint}.")
-
     def run(self, request: RelightRequest) -> Iterator[Event]:
         """Run a request, yielding Progress, ChunkDone and finally Finished events."""
         started = time.perf_counter()
@@ -206,7 +133,7 @@ class Relighter:
                 chunk_probe = torch.cat([chunk_probe, chunk_probe[-1:].expand(padded.shape[0] - length, -1, -1, -1)])
             condition, mask, lighting_latents = self._conditions(
                 request, padded, albedo_in, chunk_probe, rot, overlap)
-            t = condition.shape[2] // CLIPS
+            t = condition.shape[2] // NUM_CLIPS
             # Chunks that share no frames (an image model run frame by frame) share their noise, so
             # that consecutive frames are sampled alike and do not flicker.
             chunk_seed = index if self.spec.overlap_frames > 0 else 0
@@ -246,11 +173,13 @@ class Relighter:
             stitch(relit_out, relit_chunk, start, weights)
             stitch(albedo_out, albedo_chunk, start, weights)
             previous = (start, relit_chunk, albedo_chunk)
-            yield ChunkDone(index, len(chunks), start, relit_chunk, albedo_chunk)
+            end = start + length
+            yield ChunkDone(index, len(chunks), start, relit_chunk, albedo_chunk, relit_out[:end].copy(),
+                            albedo_out[:end].copy())
 
         seconds = time.perf_counter() - started
         if evals_done:
-            tokens = CLIPS * t * (height // self.frame_multiple) * (width // self.frame_multiple)
+            tokens = NUM_CLIPS * t * (height // self.frame_multiple) * (width // self.frame_multiple)
             network = sum(network_seconds)
             self._flops_per_second = evals_done * self._flops_per_eval(tokens) / max(network, 1e-6)
             self._overhead_per_pixel = max(seconds - network, 0.0) / (num_frames * height * width)
@@ -366,7 +295,7 @@ class Relighter:
         z_input = self._encode(frames)
         _, c, t, h, w = z_input.shape
         zeros = torch.zeros_like(z_input)
-        mask = torch.zeros(1, 1, CLIPS * t, 1, 1, device=self.device)
+        mask = torch.zeros(1, 1, NUM_CLIPS * t, 1, 1, device=self.device)
         if request.mode == "render":
             # Forward rendering: the albedo alone conditions the relit clip; the input is dropped.
             condition = torch.cat([zeros, zeros, self._encode(albedo)], dim=2)
@@ -446,16 +375,6 @@ class Relighter:
     def _autocast(self):
         """Autocast for bf16/fp16, nothing for fp32."""
         return autocast(self.dtype, self.device)
-
-    def _flops_per_eval(self, tokens: int) -> float:
-        """Network FLOPs of one evaluation: 2·params per token plus attention's 4·L²·D a block."""
-        params = sum(p.numel() for p in self.dit.parameters())
-        return 2 * params * tokens + 4 * tokens * tokens * self.spec.dit.width * self.spec.dit.depth
-
-    def _seconds_per_eval_at(self, tokens: int) -> float:
-        """Seconds per evaluation at `tokens`, from the throughput of the last run when there was one."""
-        throughput = self._flops_per_second or (2.5e11 if self.device.type == "cpu" else 2e14)
-        return self._flops_per_eval(tokens) / throughput
 
 
 def _tokenizer_in(tokenizer, dtype: torch.dtype):

@@ -74,13 +74,17 @@ class Progress:
 
 @dataclass
 class ChunkDone:
-    """A chunk has been decoded; frames cover [start, start + len) of the video."""
+    """A chunk has been decoded; `relit`/`albedo` cover [start, start + len) of the video, and
+    `stitched_relit`/`stitched_albedo` the whole video so far, [0, start + len), with the chunk
+    cross-faded into the previous ones exactly as the final result will be."""
 
     chunk: int
     num_chunks: int
     start: int
     relit: np.ndarray
     albedo: np.ndarray
+    stitched_relit: np.ndarray
+    stitched_albedo: np.ndarray
 
 
 @dataclass

@@ -23,7 +23,7 @@ sys.path.insert(0, str(REPO_ROOT))
 
 import numpy as np  # noqa: E402
 
-from relight_core import lighting, media  # noqa: E402
+from relight_core import lighting, media, outputs  # noqa: E402
 from relight_core.pipeline import Relighter, RelightRequest  # noqa: E402
 
 EXAMPLES = [  # name, input, probe, rotation (degrees), video?
@@ -83,21 +83,16 @@ def main(argv: list[str] | None = None) -> int:
             frames=frames, fps=loaded.fps, audio_path=loaded.audio_path, mode="relight", probe=probe,
             rotation=rotation, steps=args.steps, seed=0))
         out_dir = root / "results" / f"{index:02d}"
-        out_dir.mkdir(parents=True, exist_ok=True)
-        middle = result.relit.shape[0] // 2
-        media.save_image(out_dir / "relit.png", result.relit[middle])
-        media.save_image(out_dir / "albedo.png", result.albedo[middle])
-        outputs = {"relit_still": f"results/{index:02d}/relit.png", "albedo_still": f"results/{index:02d}/albedo.png"}
-        downloads = ["relit_still", "albedo_still"]
+        files = outputs.write_outputs(outputs.result_clips(result, "relight", frames), out_dir, video, result.fps,
+                                      result.audio_path, stills=True)
+        keys = {"relit_still": "relit_still", "albedo_still": "albedo_still"}
         if video:
-            media.save_video(out_dir / "relit.mp4", result.relit, result.fps, audio_from=result.audio_path)
-            media.save_video(out_dir / "albedo.mp4", result.albedo, result.fps)
-            outputs |= {"relit_video": f"results/{index:02d}/relit.mp4",
-                        "albedo_video": f"results/{index:02d}/albedo.mp4"}
-            downloads = ["relit_video", "albedo_video"]
+            keys |= {"relit_video": "relit", "albedo_video": "albedo"}
+        outputs_of = {key: files[name].relative_to(root).as_posix() for key, name in keys.items()}
+        downloads = ["relit_video", "albedo_video"] if video else ["relit_still", "albedo_still"]
         manifest["examples"].append({
             "name": name, "input": input_name, "probe": probe_name, "rotation": rotation,
-            "mode": "Relight", "video": video, "outputs": outputs, "downloads": downloads,
+            "mode": "Relight", "video": video, "outputs": outputs_of, "downloads": downloads,
             "seconds": round(result.seconds, 2)})
         print(f"{name}: {result.seconds:.1f} s", flush=True)
     (root / "manifest.json").write_text(json.dumps(manifest, indent=2) + "\n")

@@ -132,7 +132,7 @@ def test_app_argument_errors_are_one_line(capsys):
 @pytest.mark.parametrize("size", ["20000", "100000"])
 def test_a_size_the_machine_cannot_hold_is_refused_before_allocating(size, files, tmp_path, capfd, monkeypatch):
     # A machine with 16 GB free (whatever this one has): 20000² needs far more even for the tiny model.
-    monkeypatch.setattr("relight_core.pipeline.free_memory", lambda device: (16 << 30, None))
+    monkeypatch.setattr("relight_core.costs.free_memory", lambda device: (16 << 30, None))
     out = tmp_path / "out"
     started = time.monotonic()
     code, lines = run_cli(["relight", files["png"], "--probe", files["probe"], "--out", out, "--model", "tiny",

@@ -96,7 +96,7 @@ def test_good_rows_are_done_and_each_bad_row_fails_alone_with_its_sentence(first
     assert results[1]["outputs"] == "1/relit.png;1/albedo.png"
     assert results[2]["outputs"] == "2/relit.mp4;2/albedo.mp4"
     assert results[3]["outputs"] == "3/albedo.png"
-    assert results[5]["outputs"] == "5/seed0000_relit.png;5/seed0001_relit.png"
+    assert results[5]["outputs"] == "5/seed0000_relit.png;5/seed0000_albedo.png;5/seed0001_relit.png;5/seed0001_albedo.png"
     for row, r in results.items():
         assert (r["outputs"] == "") == (r["status"] == "failed")
         assert float(r["seconds"]) >= 0

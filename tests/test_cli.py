@@ -49,14 +49,20 @@ def test_relight_video_keeps_frames_fps_and_audio(files, tmp_path):
 def test_augment_writes_one_result_per_seed(files, tmp_path):
     assert main(["augment", str(files["png"]), "--seeds", "0-2", "--out", str(tmp_path), *FAST]) == 0
     outs = sorted(p.name for p in tmp_path.iterdir())
-    assert outs == ["seed0000_relit.png", "seed0001_relit.png", "seed0002_relit.png"]
-    a, b = (np.asarray(Image.open(tmp_path / n)) for n in outs[:2])
+    assert outs == [f"seed000{seed}_{kind}.png" for seed in range(3) for kind in ("albedo", "relit")]
+    a, b = (np.asarray(Image.open(tmp_path / f"seed000{seed}_relit.png")) for seed in (0, 1))
     assert not np.array_equal(a, b)
 
 
 def test_albedo_command(files, tmp_path):
     assert main(["albedo", str(files["png"]), "--out", str(tmp_path), *FAST]) == 0
     assert [p.name for p in tmp_path.iterdir()] == ["albedo.png"]
+
+
+def test_render_command_writes_only_the_rendering(files, tmp_path):
+    # The albedo is render's input: writing it back would only be the tokenizer's copy of it.
+    assert main(["render", str(files["png"]), "--probe", str(files["probe"]), "--out", str(tmp_path), *FAST]) == 0
+    assert [p.name for p in tmp_path.iterdir()] == ["relit.png"]
 
 
 def _bad_inputs(d: Path) -> dict:

@@ -189,6 +189,10 @@ def test_long_video_runs_in_chunks_and_keeps_its_length(relighter, probe):
     lo = np.minimum(chunks[0].relit[8:], chunks[1].relit[:9]) - 1e-6
     hi = np.maximum(chunks[0].relit[8:], chunks[1].relit[:9]) + 1e-6
     assert np.all((lo <= result.relit[shared]) & (result.relit[shared] <= hi)), "shared frames are blends"
+    # Each ChunkDone carries the video so far exactly as the result stitches it (the studio shows it).
+    np.testing.assert_array_equal(chunks[0].stitched_relit, chunks[0].relit)
+    np.testing.assert_array_equal(chunks[-1].stitched_relit, result.relit)
+    np.testing.assert_array_equal(chunks[-1].stitched_albedo, result.albedo)
 
 
 def test_a_last_chunk_flush_with_the_end_conditions_on_a_causal_prefix(relighter, probe):

@@ -10,7 +10,8 @@ import gradio as gr
 
 from relight_core.diffusion import SAMPLERS
 from relight_core.lighting import DEFAULT_ROTATION, MAX_PITCH_DEG, MAX_TINT, NEUTRAL_KELVIN
-from ui.studio import VIDEO_SUFFIXES, Studio, probe_choices
+from ui.inputs import VIDEO_SUFFIXES
+from ui.studio import Studio, probe_choices
 from ui.views import CLEAR, CLEAR_COMPARE, MODE_VIEWS, MODES, RANDOM_MODE, RunOutputs, status_html
 
 INPUT_TYPES = [".png", ".jpg", ".jpeg", ".webp", ".exr", ".mp4", ".mov", ".webm"]

@@ -11,22 +11,21 @@ import threading
 import time
 import uuid
 from collections.abc import Iterator
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 
 import gradio as gr
 import numpy as np
 
-from relight_core import lighting, media, preview
+from relight_core import lighting, media, outputs, preview
 from relight_core.colour import colour_science
 from relight_core.errors import InputError
 from relight_core.pipeline import ChunkDone, Finished, Progress, Relighter, RelightRequest
-from relight_core.upsample import guided_ratio_upsample
+from ui.inputs import frame_count, full_frames, is_video, load_frames
 from ui.probes import ProbeLibrary
-from ui.views import (CLEAR, CLEAR_COMPARE, MODE_VIEWS, MODES, RANDOM_MODE, ModeView, RunOutputs, _duration,
+from ui.views import (CLEAR, CLEAR_COMPARE, MODE_VIEWS, MODES, RANDOM_MODE, RunOutputs, _duration,
                       _progress_text, field_error, field_note, precision_note, status_html)
 
-VIDEO_SUFFIXES = (".mp4", ".mov", ".webm", ".mkv", ".avi", ".m4v")
 
 @dataclass(frozen=True)
 class StudioConfig:
@@ -105,7 +104,7 @@ class Studio:
                 gr.update(), gr.update(), ""
         self.check_upload(path)
         try:
-            if self._is_video(path):
+            if is_video(path):
                 info = media.probe_video(path)
                 if info.num_frames < 2:  # a one-value frame slider cannot be shown
                     raise InputError(f"{Path(path).name} has only {info.num_frames} frame; upload it as an "
@@ -141,8 +140,8 @@ class Studio:
         if not path:
             return "Upload an image or a video to see the time estimate."
         try:
-            frames = self._load_media(path, frame_start, frame_start, size).frames  # one frame: the size
-            count = self._frame_count(path, frame_start, frame_end)
+            frames = load_frames(path, frame_start, frame_start, size).frames  # one frame: the size
+            count = frame_count(path, frame_start, frame_end)
             relighter = self.relighter(model)
         except (InputError, OSError, gr.Error):
             return "No time estimate: the file above cannot be used."
@@ -263,9 +262,9 @@ class Studio:
         started = time.monotonic()
         view = MODE_VIEWS[next(label for label, name in MODES.items() if name == mode)]
         relighter = self.relighter(model)
-        loaded = self._load_media(path, frame_start, frame_end, size)
+        loaded = load_frames(path, frame_start, frame_end, size)
         frames = loaded.frames
-        full = self._full_frames(path, frame_start, frame_end) if self.config.full_resolution else None
+        full = full_frames(path, frame_start, frame_end) if self.config.full_resolution else None
         shown = frames if full is None else full
         probe = None
         if mode in ("relight", "render"):
@@ -281,8 +280,8 @@ class Studio:
         audio = (loaded.audio_path, loaded.audio_start)
         # The still beside Relit and Albedo is the frame their stills show (a video's middle one).
         middle = frames.shape[0] // 2
-        input_still = self._save(job, "input", shown[middle:middle + 1], None, audio, False)
-        input_clip = self._save(job, "input", shown, loaded.fps, audio, True) if is_video else None
+        input_still = str(outputs.save_still(job / "input", shown[middle]))
+        input_clip = str(outputs.save_clip(job / "input", shown, True, loaded.fps, *audio)) if is_video else None
         yield RunOutputs(status=status_html(0.0, "Starting: preparing the input and the light…"), input_image=input_still, input_video=input_clip,
                          relit_image=CLEAR, albedo_image=CLEAR, relit_video=CLEAR, albedo_video=CLEAR,
                          compare=CLEAR_COMPARE, downloads=CLEAR, seeds=[] if mode == "random" else None).values()
@@ -296,7 +295,6 @@ class Studio:
                 temperature=temperature, tint=tint, camera_pitch=tilt[0], camera_roll=tilt[1],
                 albedo=frames if mode == "render" else None, steps=steps,
                 sampler=sampler, seed=run_seed, guidance=guidance, should_stop=stop.is_set)
-            relit_so_far = np.zeros((0, *frames.shape[1:]), np.float32)  # finished chunks, stitched
             result = None
             seed_started = time.monotonic()
             for event in relighter.run(request):
@@ -315,11 +313,10 @@ class Studio:
                         if view.albedo else None,
                     ).values()
                 elif isinstance(event, ChunkDone) and is_video and event.num_chunks > 1 and view.relit:
-                    # Chunks overlap: each one replaces the frames from its start on.
-                    relit_so_far = np.concatenate([relit_so_far[:event.start], event.relit])
-                    partial = self._save(job, f"relit-part{event.chunk}", relit_so_far, loaded.fps,
-                                         (None, 0.0), True)
-                    yield RunOutputs(relit_video=partial).values()
+                    # The video so far, its chunks cross-faded as in the final result.
+                    partial = outputs.save_clip(job / f"relit-part{event.chunk}", event.stitched_relit, True,
+                                                loaded.fps)
+                    yield RunOutputs(relit_video=str(partial)).values()
                 elif isinstance(event, Finished):
                     result = event.result
             if result is None:  # stopped
@@ -328,12 +325,12 @@ class Studio:
             yield RunOutputs(status=status_html(
                 (run_index + 1) / len(seeds), "Writing the results" +
                 (" at the input's full resolution…" if full is not None else "…"))).values()
-            if full is not None:  # the model's size → the input's, by guided ratio transfer (upsample.py)
-                result = replace(result, relit=guided_ratio_upsample(full, frames, result.relit),
-                                 albedo=guided_ratio_upsample(full, frames, result.albedo))
-            files = self._save_result(job, result, audio, is_video, view,
-                                      suffix=f"-seed{run_seed}" if mode == "random" else "")
-            downloads += files["downloads"]
+            # The mode's clips, at the input's full resolution when it fits (guided ratio upsampling).
+            files = {k: str(v) for k, v in outputs.write_outputs(
+                outputs.result_clips(result, mode, frames, full), job, is_video, result.fps, *audio,
+                suffix=f"-seed{run_seed}" if mode == "random" else "", stills=True, linear=("relit",)).items()}
+            made = outputs.MODE_OUTPUTS[mode]
+            downloads += [files[name] for name in made] + [files[k] for k in ("relit_linear",) if k in files]
             if mode == "random":
                 gallery.append((files["relit_still"], f"seed {run_seed}"))
             yield RunOutputs(
@@ -341,10 +338,10 @@ class Studio:
                                    f"Done in {_duration(time.monotonic() - started)}." if run_index + 1 == len(seeds)
                                    else f"Seed {run_seed} done.", "done" if run_index + 1 == len(seeds)
                                    else "running"),
-                relit_image=files["relit_still"] if view.relit else None,
-                albedo_image=files["albedo_still"] if view.albedo else None,
-                relit_video=files.get("relit_video") if view.relit else None,
-                albedo_video=files.get("albedo_video") if view.albedo else None,
+                relit_image=files.get("relit_still"),
+                albedo_image=files.get("albedo_still"),
+                relit_video=files.get("relit") if is_video else None,
+                albedo_video=files.get("albedo") if is_video else None,
                 # A video's slider compares the middle frames, the stills shown beside it.
                 compare=(input_still, files["relit_still"]) if view.compare else None,
                 seeds=list(gallery) if mode == "random" else None,
@@ -385,87 +382,10 @@ class Studio:
         path.mkdir(parents=True)
         return path
 
-    def _frame_count(self, path, frame_start, frame_end) -> int:
-        if Path(path).suffix.lower() not in VIDEO_SUFFIXES:
-            return 1
-        return max(1, int(frame_end) - int(frame_start) + 1)
-
-    def _load_media(self, path, frame_start, frame_end, size: int) -> media.Media:
-        """The frames to relight, at the working resolution (videos: the chosen range only)."""
-        start, end = int(frame_start or 0), int(frame_end or 0)
-        if self._is_video(path):
-            if end < start:
-                raise InputError(f"The last frame ({end}) comes before the first ({start}); "
-                                 "set the frame range again.")
-            count = media.probe_video(path).num_frames
-            if end >= count:
-                raise InputError(f"The last frame ({end}) is past the end of {Path(path).name}, which has "
-                                 f"{count} frames (0 to {count - 1}); set the frame range again.")
-        return media.load_media(path, start=start, end=end + 1, size=int(size) if size else None)
-
-    def _full_frames(self, path, frame_start, frame_end) -> np.ndarray | None:
-        """The chosen frames at the file's own resolution; None when that is too large to hold."""
-        try:
-            return self._load_media(path, frame_start, frame_end, None).frames
-        except InputError:
-            return None
-
-    @staticmethod
-    def _is_video(path) -> bool:
-        """Whether the upload is a video; InputError when its content and its name disagree
-        (the page treats a file by its name, the readers by its content)."""
-        named_video = Path(path).suffix.lower() in VIDEO_SUFFIXES
-        if not named_video and media.media_kind(path) == "video":
-            raise InputError(f"{Path(path).name} is a video named like an image; give it its video extension "
-                             "(.mp4, .mov, .webm) and upload it again.")
-        if named_video:
-            media.probe_video(path)  # a file that is no video at all gets the reader's own sentence
-            if media.media_kind(path) != "video":
-                raise InputError(f"{Path(path).name} is a still image named like a video; give it its image "
-                                 "extension (.png, .jpg) and upload it again.")
-        return named_video
-
     @staticmethod
     def _save_preview(job: Path, name: str, frame: np.ndarray) -> str:
         # A fresh name per step: the browser would otherwise keep showing a cached image.
-        path = job / f"{name}-{uuid.uuid4().hex[:8]}.png"
-        media.save_image(path, frame)
-        return str(path)
-
-    @staticmethod
-    def _save(job: Path, name: str, frames: np.ndarray, fps, audio: tuple, is_video: bool) -> str:
-        """PNG for an image, mp4 (with the source's audio over the same span) for a video."""
-        if is_video:
-            path = job / f"{name}.mp4"
-            media.save_video(path, frames, fps, audio_from=audio[0], audio_start=audio[1])
-        else:
-            path = job / f"{name}.png"
-            media.save_image(path, frames[0])
-        return str(path)
-
-    def _save_result(self, job: Path, result, audio: tuple, is_video: bool, view: ModeView,
-                     suffix: str = "") -> dict:
-        """The result's stills, videos and downloads: only the kinds the mode makes (`view`)."""
-        files: dict = {}
-        middle = result.relit.shape[0] // 2
-        files["relit_still"] = str(job / f"relit{suffix}.png")
-        files["albedo_still"] = str(job / f"albedo{suffix}.png")
-        media.save_image(files["relit_still"], result.relit[middle])
-        media.save_image(files["albedo_still"], result.albedo[middle])
-        made = {"relit": result.relit} if view.relit else {}
-        if view.albedo:
-            made["albedo"] = result.albedo
-        if is_video:
-            for kind, frames in made.items():
-                files[f"{kind}_video"] = self._save(job, f"{kind}{suffix}", frames, result.fps, audio, True)
-            files["downloads"] = [files[f"{kind}_video"] for kind in made]
-        else:
-            files["downloads"] = [files[f"{kind}_still"] for kind in made]
-            if view.relit:
-                exr = job / f"relit{suffix}-linear.exr"
-                media.save_exr(exr, media.srgb_to_linear(result.relit[0]))
-                files["downloads"].append(str(exr))
-        return files
+        return str(outputs.save_still(job / f"{name}-{uuid.uuid4().hex[:8]}", frame))
 
 
 def probe_choices(library: ProbeLibrary) -> list[tuple[str, str]]:

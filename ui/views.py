@@ -8,6 +8,7 @@ from dataclasses import dataclass
 
 import gradio as gr
 
+from relight_core.outputs import MODE_OUTPUTS
 from relight_core.pipeline import Progress, Relighter
 
 MODES = {  # label shown in the UI → pipeline mode
@@ -21,24 +22,35 @@ RANDOM_MODE = "Random illumination"
 
 @dataclass(frozen=True)
 class ModeView:
-    """What the page shows in one mode: the run button's name, and which controls and results it uses."""
+    """What the page shows in one mode: the run button's name, and which controls and results it uses.
+    Which results a mode has is the core's `outputs.MODE_OUTPUTS`, the files the command line writes."""
 
+    mode: str                    # the pipeline mode (MODES' values)
     button: str                  # the run button's label
     uses_probe: bool             # the probe panel (gallery, rotation, exposure, colour, preview)
-    relit: str | None            # label of the relit result, None when the mode makes none
-    albedo: bool                 # shows the albedo result
+    relit_label: str             # label of the relit result, when the mode makes one
     compare: str | None          # label of the before/after slider, None when hidden
     input_label: str = "Image or video"
     input_result: str = "Input"  # label of the input still beside the results
 
+    @property
+    def relit(self) -> str | None:
+        """The relit result's label, None when the mode makes none."""
+        return self.relit_label if "relit" in MODE_OUTPUTS[self.mode] else None
+
+    @property
+    def albedo(self) -> bool:
+        """Whether the mode shows an albedo result."""
+        return "albedo" in MODE_OUTPUTS[self.mode]
+
 
 MODE_VIEWS = {
-    "Relight": ModeView("Relight", True, "Relit", True, "Before / after"),
-    "Albedo only": ModeView("Extract albedo", False, None, True, None),
-    "Render from albedo": ModeView("Render from albedo", True, "Rendered", False, "Albedo / rendered",
+    "Relight": ModeView("relight", "Relight", True, "Relit", "Before / after"),
+    "Albedo only": ModeView("albedo", "Extract albedo", False, "Relit", None),
+    "Render from albedo": ModeView("render", "Render from albedo", True, "Rendered", "Albedo / rendered",
                                    input_label="Albedo image or video (rendered under the probe)",
                                    input_result="Albedo (input)"),
-    RANDOM_MODE: ModeView("Make random illuminations", False, "Relit (last seed)", True, None),
+    RANDOM_MODE: ModeView("random", "Make random illuminations", False, "Relit (last seed)", None),
 }
 CLEAR = gr.update(value=None)  # a RunOutputs field set to this empties the component
 CLEAR_COMPARE = gr.update(value=(None, None))  # the before/after slider emptied: no before, no after

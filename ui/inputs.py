@@ -1,0 +1,58 @@
+"""The studio's uploads: which are videos (by name and by content, which must agree), and their
+frames for a chosen range at the working or the file's own resolution, with errors in one sentence."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from relight_core import media
+from relight_core.errors import InputError
+
+VIDEO_SUFFIXES = (".mp4", ".mov", ".webm", ".mkv", ".avi", ".m4v")
+
+
+def frame_count(path, frame_start, frame_end) -> int:
+    """How many frames the chosen range holds (1 for an image)."""
+    if Path(path).suffix.lower() not in VIDEO_SUFFIXES:
+        return 1
+    return max(1, int(frame_end) - int(frame_start) + 1)
+
+
+def load_frames(path, frame_start, frame_end, size: int | None) -> media.Media:
+    """The frames to relight, at the working resolution `size` (None: the file's own; videos: the
+    chosen range only)."""
+    start, end = int(frame_start or 0), int(frame_end or 0)
+    if is_video(path):
+        if end < start:
+            raise InputError(f"The last frame ({end}) comes before the first ({start}); "
+                             "set the frame range again.")
+        count = media.probe_video(path).num_frames
+        if end >= count:
+            raise InputError(f"The last frame ({end}) is past the end of {Path(path).name}, which has "
+                             f"{count} frames (0 to {count - 1}); set the frame range again.")
+    return media.load_media(path, start=start, end=end + 1, size=int(size) if size else None)
+
+
+def full_frames(path, frame_start, frame_end) -> np.ndarray | None:
+    """The chosen frames at the file's own resolution; None when that is too large to hold."""
+    try:
+        return load_frames(path, frame_start, frame_end, None).frames
+    except InputError:
+        return None
+
+
+def is_video(path) -> bool:
+    """Whether the upload is a video; InputError when its content and its name disagree
+    (the page treats a file by its name, the readers by its content)."""
+    named_video = Path(path).suffix.lower() in VIDEO_SUFFIXES
+    if not named_video and media.media_kind(path) == "video":
+        raise InputError(f"{Path(path).name} is a video named like an image; give it its video extension "
+                         "(.mp4, .mov, .webm) and upload it again.")
+    if named_video:
+        media.probe_video(path)  # a file that is no video at all gets the reader's own sentence
+        if media.media_kind(path) != "video":
+            raise InputError(f"{Path(path).name} is a still image named like a video; give it its image "
+                             "extension (.png, .jpg) and upload it again.")
+    return named_video
