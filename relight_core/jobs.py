@@ -64,7 +64,7 @@ def load_inputs(job: MediaJob) -> JobInputs:
     source = media.load_media(job.input, start=start, end=end)
     probe = None
     if job.mode in PROBE_MODES and job.probe is not None:
-        probe = lighting.load_probe(job.probe, intensity=job.intensity)
+        probe = lighting.load_probe(job.probe)  # the intensity goes on the request, as in the studio
     return JobInputs(source, probe)
 
 
@@ -78,7 +78,7 @@ def plan_job(job: MediaJob, relighter: Relighter, inputs: JobInputs) -> JobPlan:
                            guidance=job.guidance > 0, hint="pass a smaller --size")
     frames = media.resize_frames(source.frames, size, multiple=relighter.frame_multiple)
     base = dict(fps=source.fps, audio_path=source.audio_path, audio_start=source.audio_start, steps=job.steps,
-                sampler=job.sampler, guidance=job.guidance, mode=job.mode, probe=inputs.probe)
+                sampler=job.sampler, guidance=job.guidance, mode=job.mode, probe=inputs.probe, intensity=job.intensity)
     if job.rotation is not None:
         base["rotation"] = job.rotation
     if job.rotate_light:

@@ -1,5 +1,6 @@
 """`python -m relight_core batch` on a real local Ray instance (2 CPUs, the tiny preset): good rows
-done, bad rows failed alone with their sentence, finished rows skipped, a killed run resumed."""
+done, bad rows failed alone with their sentence, finished rows skipped, a killed run resumed.
+The Ray instance (`ray_address`) is shared with the render-data and autolabel tests."""
 
 import contextlib
 import csv
@@ -24,13 +25,25 @@ TRUNCATED = "bad.png is damaged or truncated (image file is truncated); re-expor
 NOT_A_PROBE = "The light probe photo0.png is not an OpenEXR or Radiance HDR file; use .exr or .hdr."
 
 
+_shared_ray = []  # [(the connect() context, its address)] while the shared instance runs
+
+
 @pytest.fixture(scope="module")
-def ray_address():
-    """One local Ray instance for the whole module; batch runs in this process reuse its connection."""
+def ray_address(request):
+    """One local Ray instance (2 CPUs) for every module that uses this fixture (this one,
+    test_data_autolabel.py and test_data_render.py import it): started by the first, stopped after
+    the last, so the session pays Ray's start once and no Ray process idles beside the other modules.
+    Runs in this process (batch, render-data, autolabel) reuse its connection."""
     from relight_core.batch import connect
 
-    with connect(num_cpus=2) as ray:
-        yield ray.get_runtime_context().gcs_address
+    if not _shared_ray:
+        context = connect(num_cpus=2)
+        ray = context.__enter__()
+        _shared_ray.append((context, ray.get_runtime_context().gcs_address))
+    yield _shared_ray[0][1]
+    users = [item.module for item in request.session.items if "ray_address" in item.fixturenames]
+    if not users or users[-1] is request.module:
+        _shared_ray.pop()[0].__exit__(None, None, None)
 
 
 @pytest.fixture(scope="module")

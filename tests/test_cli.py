@@ -121,6 +121,21 @@ def test_an_output_folder_that_cannot_be_made_is_one_sentence(files, tmp_path, c
     assert [line for line in err.splitlines() if line.startswith("error: ")] == [err.splitlines()[-1]]
 
 
+def test_intensity_is_applied_where_the_studio_applies_it(files, tmp_path, monkeypatch):
+    """One place scales the probe: the pipeline's `adjust_light`, from the request (CLI, batch and studio)."""
+    from relight_core import lighting
+
+    used = []
+    adjust = lighting.adjust_light
+    monkeypatch.setattr(lighting, "adjust_light", lambda probe, intensity, kelvin, tint: used.append(
+        (intensity, float(probe.max()))) or adjust(probe, intensity, kelvin, tint))
+    args = ["relight", str(files["png"]), "--probe", str(files["probe"]), *FAST]
+    assert main([*args, "--out", str(tmp_path / "one")]) == 0
+    assert main([*args, "--out", str(tmp_path / "three"), "--intensity", "3"]) == 0
+    assert [intensity for intensity, _ in used] == [1.0, 3.0]
+    assert used[0][1] == used[1][1]  # the probe itself arrives unscaled both times
+
+
 def test_light_colour_temperature(files, tmp_path, capsys, monkeypatch):
     from relight_core import lighting
 

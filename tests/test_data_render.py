@@ -1,5 +1,8 @@
-"""Mitsuba rendering: the envmap convention, shared geometry across lights, albedo = base colour."""
+"""Mitsuba rendering: the envmap convention, shared geometry across lights, albedo = base colour;
+render-data on Ray: the same files as one process, a failed scene alone, resume."""
 
+import csv
+import json
 import math
 
 import numpy as np
@@ -14,6 +17,9 @@ from relight_core.data.probes import ProbeChoice  # noqa: E402
 from relight_core.data.render import SceneRenderer, init_mitsuba, to_mitsuba_bitmap  # noqa: E402
 from relight_core.data.scenes import (CameraSpec, MaterialSpec, ObjectSpec, SceneSpec,  # noqa: E402
                                       camera_to_world, sample_scene)
+from tests.test_batch import ray_address as shared_ray  # noqa: E402
+
+ray_address = shared_ray  # the Ray instance test_batch.py starts, shared with this module
 
 GREY = MaterialSpec(base_color=(0.5, 0.5, 0.5), texture=None, texture_repeat=1.0, roughness=0.8,
                     metallic=0.0, specular=0.5, transmission=0.0)
@@ -123,3 +129,60 @@ def test_albedo_equals_base_colour_on_a_flat_unshadowed_patch():
     patch = linear_to_srgb(albedo[8:24, 8:24])
     np.testing.assert_allclose(patch, np.broadcast_to(base, patch.shape), atol=1.5 / 255)
     assert mask[8:24, 8:24].min() == 1.0
+
+
+# ---------------------------------------------------------------- render-data on Ray
+
+RUN = dict(scenes=3, frames=2, size=32, spp=4, seed=11)
+
+
+def _tree(root):
+    """Every file under `root` (hidden lock files aside) → its bytes."""
+    files = {}
+    for path in sorted(root.rglob("*")):
+        if path.is_file() and not path.name.startswith("."):
+            files[str(path.relative_to(root))] = path.read_bytes()
+    return files
+
+
+def _render_data(out, *flags):
+    from tests.test_batch import _main_capturing
+
+    argv = ["render-data", "--out", str(out), *[f"--{k}={v}" for k, v in RUN.items()], *flags]
+    return _main_capturing(argv)
+
+
+def test_render_data_on_ray_writes_the_same_files_fails_a_scene_alone_and_resumes(ray_address, tmp_path):
+    """Scenes as Ray tasks on two workers give the bytes one process gives; a scene whose folder
+    cannot be made fails alone with its sentence; the re-run renders that scene only."""
+    from relight_core.data.generate import RenderConfig, render_dataset
+
+    reference = tmp_path / "in-process"
+    render_dataset(RenderConfig(out=reference, workers=1, **RUN), progress=False)
+    out = tmp_path / "ray"
+    (out / "train").mkdir(parents=True)
+    (out / "train" / "scene_000001").write_text("in the way")  # a file where the scene's folder goes
+
+    code, stdout, stderr = _render_data(out, "--workers=2", f"--ray-address={ray_address}")
+    assert code == 1, stderr
+    assert stdout.strip() == str(out / "train" / "manifest.json")
+    sentence = (f"File exists ({out / 'train' / 'scene_000001'}); free some space or choose another "
+                "output folder.")
+    assert f"scene_000001 failed: {sentence}" in stderr and "Traceback" not in stderr
+    assert "2 of 3 scenes done, 1 failed." in stderr
+    with open(out / "train" / "failed.csv", newline="") as f:
+        assert list(csv.reader(f)) == [["item", "error"], ["scene_000001", sentence]]
+    manifest = json.loads((out / "train" / "manifest.json").read_text())
+    assert [s["path"] for s in manifest["samples"]] == ["scene_000000", "scene_000002"]
+    expected = _tree(reference)
+    got = _tree(out)
+    for name in ("scene_000000", "scene_000002"):
+        assert {k: v for k, v in got.items() if name in k} == {k: v for k, v in expected.items() if name in k}
+
+    stamps = {p: p.stat().st_mtime_ns for p in (out / "train").glob("scene_00000[02]/**/*")}
+    (out / "train" / "scene_000001").unlink()
+    code, _, stderr = _render_data(out, "--workers=2", f"--ray-address={ray_address}")
+    assert code == 0, stderr
+    assert "3 scenes: 2 done, 1 to run." in stderr
+    assert {p: p.stat().st_mtime_ns for p in stamps} == stamps  # finished scenes were not rendered again
+    assert _tree(out) == expected  # every file, manifest included, as one process writes them

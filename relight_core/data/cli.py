@@ -2,14 +2,14 @@
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
-from relight_core.arguments import int_at_least
+from relight_core.arguments import finite_float, int_at_least
 from relight_core.errors import InputError
 
 
 positive_int = int_at_least(1)  # argparse type: a whole number ≥ 1
+RAY_ADDRESS_HELP = "a running Ray cluster (see 'ray start --head' and docs/SCALE.md); default: a local Ray instance"
 
 
 def add_data_commands(subparsers) -> None:
@@ -21,7 +21,10 @@ def add_data_commands(subparsers) -> None:
     p.add_argument("--size", type=positive_int, default=128, help="frame side in pixels")
     p.add_argument("--spp", type=positive_int, default=64, help="samples per pixel (rounded up to a square, k×k stratified)")
     p.add_argument("--seed", type=int, default=0, help="dataset seed: same seed, same files")
-    p.add_argument("--workers", type=positive_int, default=os.cpu_count() or 1, help="parallel processes")
+    p.add_argument("--workers", type=positive_int, default=None,
+                   help="scenes rendered at once, one CPU each (default: one per CPU of this machine, or of the "
+                        "cluster with --ray-address); 1 without --ray-address renders in this process, without Ray")
+    p.add_argument("--ray-address", default=None, metavar="HOST:PORT", help=RAY_ADDRESS_HELP)
     p.add_argument("--split", choices=("train", "test"), default="train",
                    help="test uses held-out probes, meshes and textures")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -35,26 +38,49 @@ def add_data_commands(subparsers) -> None:
     p.add_argument("--size", type=positive_int, default=None, help="working resolution (default: the model's)")
     p.add_argument("--max-frames", type=positive_int, default=None, help="cut each video to this many frames")
     p.add_argument("--steps", type=positive_int, default=None, help="sampling steps (default: the model's)")
-    p.add_argument("--device", default=None, help="cpu or cuda")
+    p.add_argument("--device", default=None,
+                   help="cpu or cuda (default: GPU workers when the Ray cluster has GPUs, else CPU workers)")
+    p.add_argument("--ray-address", default=None, metavar="HOST:PORT", help=RAY_ADDRESS_HELP)
+    p.add_argument("--workers", type=positive_int, default=None,
+                   help="workers, each holding one model (default: one per GPU, else one per --cpus-per-worker "
+                        "CPUs); 1 without --ray-address labels in this process, without Ray")
+    p.add_argument("--cpus-per-worker", type=positive_int, default=1,
+                   help="CPUs each worker reserves; a CPU worker runs torch on as many threads (default: 1)")
+    p.add_argument("--gpus-per-worker", type=finite_float(0.0, 64.0, low_open=True, what="GPUs per worker"),
+                   default=1.0, help="GPUs each GPU worker reserves; a fraction shares one GPU (default: 1)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=_autolabel)
 
 
 def _render_data(args) -> int:
+    from relight_core.batch.samples import report
     from relight_core.data.generate import RenderConfig, render_dataset
 
     if args.size % 16:
         raise InputError(f"--size {args.size} is not a multiple of 16; the tokenizer needs one (e.g. 128).")
+    _check_address(args.ray_address)
     config = RenderConfig(out=args.out, scenes=args.scenes, frames=args.frames, size=args.size, spp=args.spp,
-                          seed=args.seed, workers=args.workers, split=args.split)
-    print(render_dataset(config, progress=not args.quiet))
-    return 0
+                          seed=args.seed, workers=args.workers, split=args.split, address=args.ray_address)
+    return report(render_dataset(config, progress=not args.quiet), "scene")
 
 
 def _autolabel(args) -> int:
+    from relight_core.batch.samples import report
     from relight_core.data.autolabel import autolabel
 
     if not args.videos.is_dir():
         raise InputError(f"{args.videos} is not a folder; give the folder that holds the videos to label.")
-    print(autolabel(args.videos, args.out, split=args.split, model=args.model, size=args.size,
-                    max_frames=args.max_frames, steps=args.steps, device=args.device))
-    return 0
+    _check_address(args.ray_address)
+    summary = autolabel(args.videos, args.out, split=args.split, model=args.model, size=args.size,
+                        max_frames=args.max_frames, steps=args.steps, device=args.device, address=args.ray_address,
+                        workers=args.workers, cpus_per_worker=args.cpus_per_worker,
+                        gpus_per_worker=args.gpus_per_worker, progress=not args.quiet)
+    return report(summary, "video")
+
+
+def _check_address(address: str | None) -> None:
+    """A cluster that is not there is one sentence before anything else starts."""
+    if address:
+        from relight_core.batch.engine import check_reachable
+
+        check_reachable(address)

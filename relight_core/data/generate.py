@@ -1,24 +1,34 @@
-"""`render-data`: render a split of synthetic scenes to disk — deterministic, resumable, parallel."""
+"""`render-data`: render a split of synthetic scenes to disk — deterministic, resumable, parallel on Ray.
+
+Each scene is one Ray task declaring one CPU (Mitsuba on one Dr.Jit thread), on a local Ray instance
+of `workers` CPUs, or on the cluster at `address`; `workers == 1` without an address renders in this
+process instead (no Ray start-up for a small job). Either way the units go through the engine the
+batch command uses (relight_core/batch/engine.py, samples.py): progress, failure isolation, resume.
+"""
 
 from __future__ import annotations
 
-import multiprocessing
+import dataclasses
+import os
+import sys
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
-from tqdm import tqdm
 
+from relight_core.batch.engine import DONE, FAILED, UnitResult, engine, locked, sentence, worker_plan
+from relight_core.batch.samples import DataSummary, Sample, run_samples
 from relight_core.colour import linear_to_srgb
-from relight_core.data.dataset import is_finished, write_frame, write_manifest, write_meta
+from relight_core.data.dataset import is_finished, write_frame, write_meta
 from relight_core.data.render import SceneRenderer, init_mitsuba, stratified_spp
 from relight_core.data.scenes import SPLITS, SceneSpec, camera_to_world, probe_yaw, sample_scene
 
 
 @dataclass(frozen=True)
 class RenderConfig:
-    """What to render: `scenes` scenes of `frames` frames at `size`², `spp` samples per pixel."""
+    """What to render: `scenes` scenes of `frames` frames at `size`², `spp` samples per pixel; where:
+    `workers` scenes at once (None: one per CPU of this machine, or of the cluster at `address`)."""
 
     out: Path
     scenes: int = 100
@@ -26,8 +36,9 @@ class RenderConfig:
     size: int = 128
     spp: int = 64
     seed: int = 0
-    workers: int = 2
+    workers: int | None = None
     split: str = "train"
+    address: str | None = None  # a running Ray cluster; None: a local instance (or this process, workers 1)
 
 
 def scene_dir(config: RenderConfig, index: int) -> Path:
@@ -63,44 +74,48 @@ def render_scene(spec: SceneSpec, size: int, spp: int, out_dir: Path) -> None:
     })
 
 
-def _worker_init() -> None:
-    init_mitsuba(threads=1)
+def render_unit(config: RenderConfig, index: int) -> UnitResult:
+    """Render scene `index` into its folder (a Ray task, or a call in this process); a failure is the
+    scene's result, with one sentence."""
+    init_mitsuba(threads=1)  # once per process: the variant; one thread keeps the bits reproducible
+    name = scene_dir(config, index).name
+    wall, cpu = time.perf_counter(), time.process_time()
+    try:
+        spec = sample_scene(config.seed, config.split, index, config.frames)
+        render_scene(spec, config.size, config.spp, scene_dir(config, index))
+        status, error = DONE, ""
+    except Exception as exc:  # a full disk, a bug in one scene: this scene's result
+        status, error = FAILED, sentence(exc, "scene")
+    return UnitResult(name, status, time.perf_counter() - wall, error, time.process_time() - cpu)
 
 
-def _render_index(job: tuple[RenderConfig, int]) -> tuple[int, float]:
-    config, index = job
-    start = time.process_time()
-    spec = sample_scene(config.seed, config.split, index, config.frames)
-    render_scene(spec, config.size, config.spp, scene_dir(config, index))
-    return index, time.process_time() - start
-
-
-def render_dataset(config: RenderConfig, progress: bool = True) -> Path:
-    """Render the missing scenes of a split (finished ones are skipped) and rewrite its manifest."""
+def render_dataset(config: RenderConfig, progress: bool = True) -> DataSummary:
+    """Render the missing scenes of a split (finished ones are skipped) and rewrite its manifest;
+    `summary.manifest` is the manifest's path, `summary.failures` the scenes that failed."""
+    config = dataclasses.replace(config, out=Path(config.out).expanduser().resolve(),  # workers' paths
+                                 workers=config.workers or (None if config.address else os.cpu_count() or 1))
     split_dir = config.out / config.split
     split_dir.mkdir(parents=True, exist_ok=True)
-    todo = [i for i in range(config.scenes) if not is_finished(scene_dir(config, i))]
-    bar = tqdm(total=config.scenes, initial=config.scenes - len(todo), unit="scene",
-               disable=not progress, desc=f"render-data {config.split}")
-    cpu_seconds = 0.0
-    start = time.time()
-    if config.workers <= 1:
-        _worker_init()
-        results = map(_render_index, [(config, i) for i in todo])
-        for _, seconds in results:
-            cpu_seconds += seconds
-            bar.update(1)
-    else:
-        # Spawned (not forked) workers: each selects its Mitsuba variant exactly once.
-        with multiprocessing.get_context("spawn").Pool(config.workers, initializer=_worker_init) as pool:
-            for _, seconds in pool.imap_unordered(_render_index, [(config, i) for i in todo]):
-                cpu_seconds += seconds
-                bar.update(1)
-    bar.close()
-    if todo and progress:
-        images = len(todo) * config.frames * 2  # one image per frame and light
-        wall = time.time() - start
-        print(f"rendered {len(todo)} scenes = {images} images (frame × light) in {wall:.1f} s: "
-              f"{images / wall:.2f} images/s, {cpu_seconds / images:.2f} CPU-s per image "
-              "incl. albedo, mask and camera-frame probe")
-    return write_manifest(split_dir)
+    with locked(split_dir, ".render-data.lock", "render-data run", "--out or --split"):
+        todo = [Sample(scene_dir(config, i), scene_dir(config, i).name, (i,))
+                for i in range(config.scenes) if not is_finished(scene_dir(config, i))]
+        desc = f"render-data {config.split}"
+        if not todo:  # nothing to render: no Ray
+            return run_samples(split_dir, config.scenes, [], None, 1, None, None, "scene", desc, progress)
+        with engine(config.address, config.workers, num_cpus=config.workers) as ray:
+            if ray is None:
+                count, call = 1, lambda _, sample: render_unit(config, *sample.args)
+            else:
+                plan = worker_plan(ray, len(todo), config.workers, device="cpu", gpu_capable=False)
+                # No retries: a scene whose process dies fails alone, with its sentence.
+                task = ray.remote(render_unit).options(num_cpus=1, max_retries=0)
+                count, call = plan.count, lambda _, sample: task.remote(config, *sample.args)
+            summary = run_samples(split_dir, config.scenes, todo, ray, count, None, call, "scene", desc, progress)
+    rendered = len(todo) - len(summary.failures)
+    if rendered and progress:
+        images = rendered * config.frames * 2  # one image per frame and light
+        print(f"rendered {rendered} scenes = {images} images (frame × light) in {summary.seconds:.1f} s on "
+              f"{count} worker{'s' * (count != 1)}: {images / summary.seconds:.2f} images/s, "
+              f"{summary.cpu_seconds / images:.2f} CPU-s per image incl. albedo, mask and camera-frame probe",
+              file=sys.stderr)
+    return summary
