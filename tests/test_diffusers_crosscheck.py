@@ -17,9 +17,10 @@ from diffusers.models.transformers.transformer_cosmos import CosmosTransformer3D
 from torch import nn
 
 from relight_core.dit import (
-    CHANNELS, NUM_CLIPS, TOKEN_CHANNELS, DiTConfig, JointDiT, modulated_layer_norm, rope_angles,
+    CHANNELS, NUM_CLIPS, TOKEN_CHANNELS, DiTConfig, JointDiT, modulated_layer_norm,
 )
 from relight_core.released import released_to_ours
+from relight_core.rope import rope_angles
 from tests.factory import released_names
 
 # The released block structure in miniature (FA-CA-MLP, AdaLN-LoRA, t-RoPE NTK ratio 2), context on.

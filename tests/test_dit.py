@@ -9,9 +9,10 @@ from safetensors.torch import load_file, save_file
 
 from relight_core.dit import (
     ASSEMBLED_CHANNELS, CHANNELS, DIT_PRESETS, LIGHTING_CHANNELS, TOKEN_CHANNELS, DiTConfig, JointDiT,
-    assemble_inputs, pack_lighting, param_count, rms_norm_rope, rope_angles,
+    assemble_inputs, pack_lighting, param_count,
 )
 from relight_core.released import convert_released_state_dict, released_to_ours
+from relight_core.rope import rms_norm_rope, rope_angles
 
 TINY = DIT_PRESETS["tiny"]
 
