@@ -28,9 +28,13 @@ def _frame_range(text: str) -> tuple[int, int | None]:
     """"START:END" (END exclusive, optional) → (start, end)."""
     try:
         start, _, end = text.partition(":")
-        return int(start or 0), (int(end) if end else None)
+        start, end = int(start or 0), (int(end) if end else None)
     except ValueError:
         raise argparse.ArgumentTypeError(f"'{text}' is not a frame range; write e.g. 0:57.") from None
+    if start < 0 or (end is not None and end <= start):
+        raise argparse.ArgumentTypeError(f"the frame range '{text}' holds no frame; write START:END with "
+                                         "0 ≤ START < END (END excluded), e.g. 0:57.")
+    return start, end
 
 
 def _sampler(text: str) -> str:

@@ -12,6 +12,7 @@ temp files left behind (there should be none). Exit code 0 when nothing was lost
 from __future__ import annotations
 
 import argparse
+import shutil
 import signal
 import socket
 import subprocess
@@ -58,11 +59,30 @@ def main() -> int:
     if not (1 <= args.clients <= 32 and 1 <= args.jobs <= 10 and 0 < args.timeout <= 3600):
         parser.error("use 1–32 clients, 1–10 jobs each and a timeout of at most 3600 s")
 
-    from gradio_client import Client, handle_file
+    work = Path(tempfile.mkdtemp(prefix="unirelight-load-"))
+    try:
+        return _run(args, work)
+    finally:  # whatever happened (an app that never started, Ctrl+C): no server and no files left behind
+        shutil.rmtree(work, ignore_errors=True)
 
+
+def _stop(app: subprocess.Popen) -> int | str:
+    """SIGTERM the app (as a user would) and wait; kill it if it does not stop within 120 s."""
+    if app.poll() is not None:
+        return app.returncode
+    app.send_signal(signal.SIGTERM)
+    try:
+        return app.wait(timeout=120)
+    except subprocess.TimeoutExpired:
+        app.kill()
+        app.wait()
+        return "killed after 120 s"
+
+
+def _run(args, work: Path) -> int:
+    """Launch the app with its temp folder in `work`, load it, stop it; the app is stopped whatever happens."""
     from relight_core import media
 
-    work = Path(tempfile.mkdtemp(prefix="unirelight-load-"))
     image = work / "scene.png"
     yy, xx = np.mgrid[0:48, 0:64] / np.array([48, 64])[:, None, None]
     media.save_image(image, np.stack([xx, yy, 0.5 * xx * yy], -1).astype(np.float32))
@@ -72,6 +92,17 @@ def main() -> int:
                             "--host", "127.0.0.1", "--port", str(port), "--temp-dir", str(temp),
                             "--queue-size", str(args.queue_size)], cwd=ROOT,
                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        return _load(args, app, port, image, temp)
+    finally:
+        if app.poll() is None:  # not stopped by _load (it did not start, or an error): stop it now
+            _stop(app)
+
+
+def _load(args, app: subprocess.Popen, port: int, image: Path, temp: Path) -> int:
+    """Wait for the app, run the clients, print the numbers, then SIGTERM it and count the files it left."""
+    from gradio_client import Client, handle_file
+
     url = f"http://127.0.0.1:{port}/"
     deadline = time.monotonic() + args.timeout
     while True:
@@ -131,12 +162,7 @@ def main() -> int:
     stop_sampling.set()
     rss["after"] = rss_bytes(app.pid)
 
-    app.send_signal(signal.SIGTERM)
-    try:
-        code = app.wait(timeout=120)
-    except subprocess.TimeoutExpired:
-        app.kill()
-        code = "killed after 120 s"
+    code = _stop(app)
     left = [p for p in temp.rglob("*") if p.is_file()] if temp.exists() else []
 
     gb = 2**30

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import os
 import signal
+import socket
 import subprocess
 import sys
 import threading
@@ -64,6 +65,26 @@ def test_uploaded_active_content_is_never_served_inline(studio):
         assert not any(t in kind for t in ("html", "svg", "javascript", "xml")), (name, kind)
         assert response.headers["content-disposition"].startswith("attachment"), name
         assert response.headers["x-content-type-options"] == "nosniff"
+
+
+def test_active_content_in_the_studios_own_folders_is_a_download_too(studio):
+    # Files under the allowed folders (the work folder, examples) are served inline by Gradio with the type
+    # their name suggests; any type a browser could run as a page must still come back as a download.
+    client, demo, _, tmp = studio
+    folder = Path(demo.studio_root) / "work" / "odd-names"
+    folder.mkdir(parents=True, exist_ok=True)
+    page = '<x xmlns:h="http://www.w3.org/1999/xhtml"><h:script>alert(1)</h:script></x>'
+    for name in ("evil.html", "evil.rdf", "evil.xslt", "evil.mml", "evil.atom", "evil.xht"):
+        (folder / name).write_text(page)
+        response = httpx.get(f"{client.src}gradio_api/file={folder / name}")
+        assert response.status_code == 200, (name, response.status_code)
+        kind = response.headers["content-type"]
+        assert not any(t in kind for t in ("html", "svg", "javascript", "xml")), (name, kind)
+        assert response.headers["content-disposition"].startswith("attachment"), name
+    picture = scene_image(folder / "picture.png")  # what the studio does write there is still shown inline
+    response = httpx.get(f"{client.src}gradio_api/file={picture}")
+    assert response.headers["content-type"] == "image/png"
+    assert not response.headers.get("content-disposition", "").startswith("attachment")
 
 
 def test_temp_dir_gets_a_fresh_private_subfolder(studio):
@@ -166,6 +187,31 @@ def test_a_truncated_video_is_refused_with_the_frames_read(studio):
         run_job(client, **relight_args(half, frame_start=0, frame_end=16, steps=1))
 
 
+@pytest.mark.parametrize("value, words", [
+    (float("nan"), "The number of steps must be a whole number within range, not nan."),
+    (float("inf"), "not inf"), (1e308, "not 1e+308"), (2.5, "not 2.5"), ("many", "not 'many'"), (None, "not 'None'")])
+def test_whole_number_fields_of_a_request_are_one_sentence(value, words):
+    # API clients reach Studio.run with whatever JSON numbers they send (non-standard NaN included);
+    # int() would say "cannot convert float NaN to integer" and a huge frame number would print 309 digits.
+    from relight_core.errors import InputError
+    from ui.inputs import whole_number
+
+    with pytest.raises(InputError) as caught:
+        whole_number(value, "number of steps")
+    assert words in str(caught.value) and len(str(caught.value)) < 100
+    assert whole_number(7.0, "seed") == 7 and whole_number("12", "seed") == 12
+
+
+def test_x_forwarded_for_keys_a_client_only_behind_the_share_tunnel():
+    from ui.security import client_key
+
+    tunnel = {"client": ("127.0.0.1", 50000), "headers": [(b"x-forwarded-for", b"6.6.6.6, 203.0.113.7")]}
+    assert client_key(tunnel, trust_forwarded=True) == "203.0.113.7"  # the hop the tunnel added
+    assert client_key(tunnel) == "127.0.0.1"                          # no tunnel: a local user's own header
+    remote = {"client": ("198.51.100.2", 50000), "headers": tunnel["headers"]}
+    assert client_key(remote, trust_forwarded=True) == "198.51.100.2"  # only a loopback peer can be a tunnel
+
+
 def test_failed_logins_back_off_per_client_and_are_logged(tmp_path, monkeypatch, caplog):
     # The server's clock stands still except while it waits, so the waits it asks for are exact
     # however slow this machine is; `waits` records them per client.
@@ -185,29 +231,34 @@ def test_failed_logins_back_off_per_client_and_are_logged(tmp_path, monkeypatch,
     try:
         assert httpx.get(f"{url}config").status_code == 401
 
-        def login(password: str, client: str = "10.0.0.1") -> int:
-            return httpx.post(f"{url}login", data={"username": "ann", "password": password},
-                              headers={"X-Forwarded-For": client}, timeout=120).status_code
+        def login(password: str, client: str = "127.0.0.11", forwarded: str | None = None) -> int:
+            # Clients are loopback addresses of their own (127.0.0.0/8 all reach the server).
+            with httpx.Client(transport=httpx.HTTPTransport(local_address=client), timeout=120) as http:
+                return http.post(f"{url}login", data={"username": "ann", "password": password},
+                                 headers={"X-Forwarded-For": forwarded} if forwarded else {}).status_code
 
         assert [login(f"guess{i}") for i in range(4)] == [400] * 4
-        assert waits.pop("10.0.0.1") == [0.5, 1.0, 2.0]  # before the 2nd, 3rd and 4th attempts
-        assert login("wrong", client="10.0.0.2") == 400 and "10.0.0.2" not in waits  # others do not wait
+        assert waits.pop("127.0.0.11") == [0.5, 1.0, 2.0]  # before the 2nd, 3rd and 4th attempts
+        assert login("wrong", client="127.0.0.12") == 400 and "127.0.0.12" not in waits  # others do not wait
+        # Without a share tunnel X-Forwarded-For is not trusted: a fresh header per guess is no fresh client.
+        assert login("guess4", forwarded="1.2.3.4") == 400 and waits.pop("127.0.0.11") == [4.0]
+        assert "1.2.3.4" not in waits
         assert login("secret") == 200  # the right password still works, after its wait
-        assert waits.pop("10.0.0.1") == [4.0]
-        assert login("secret") == 200 and "10.0.0.1" not in waits  # success forgot the failures
+        assert waits.pop("127.0.0.11") == [8.0]
+        assert login("secret") == 200 and "127.0.0.11" not in waits  # success forgot the failures
         # Guessing in parallel does not help: one client's attempts are taken one at a time.
-        threads = [threading.Thread(target=login, args=(f"p{i}", "10.0.0.3")) for i in range(5)]
+        threads = [threading.Thread(target=login, args=(f"p{i}", "127.0.0.13")) for i in range(5)]
         for thread in threads:
             thread.start()
         for thread in threads:
             thread.join()
-        assert waits.pop("10.0.0.3") == [0.5, 1.0, 2.0, 4.0]
+        assert waits.pop("127.0.0.13") == [0.5, 1.0, 2.0, 4.0]
         for _ in range(12):  # the wait stops growing at BACKOFF_MAX_S
-            login("again", client="10.0.0.4")
-        assert max(waits["10.0.0.4"]) == security.BACKOFF_MAX_S
+            login("again", client="127.0.0.14")
+        assert max(waits["127.0.0.14"]) == security.BACKOFF_MAX_S
         logged = [r.getMessage() for r in caplog.records if r.name == "unirelight.studio.auth"]
-        assert "Failed login for user 'ann' from 10.0.0.1 (4 in a row); its next attempt waits 4.0 s." in logged
-        assert any("succeeded after 4 failed attempts" in m for m in logged), logged
+        assert "Failed login for user 'ann' from 127.0.0.11 (4 in a row); its next attempt waits 4.0 s." in logged
+        assert any("succeeded after 5 failed attempts" in m for m in logged), logged
     finally:
         demo.close()
 
@@ -239,3 +290,26 @@ def test_sigterm_stops_the_app_and_removes_its_temp_folder(tmp_path):
     assert proc.returncode == 0, output
     assert "Traceback" not in output
     assert list(temp.iterdir()) == [], list(temp.rglob("*"))[:5]
+
+
+@pytest.mark.filterwarnings("ignore::pytest.PytestUnhandledThreadExceptionWarning")  # uvicorn's SystemExit(3)
+def test_a_busy_port_a_foreign_address_and_an_unusable_temp_dir_are_one_sentence(tmp_path, monkeypatch, capfd):
+    from relight_core.errors import InputError
+
+    monkeypatch.setenv("GRADIO_TEMP_DIR", os.environ.get("GRADIO_TEMP_DIR", ""))  # restored afterwards
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        port = busy.getsockname()[1]
+        with pytest.raises(InputError, match=f"cannot listen on 127.0.0.1 at port {port}"):
+            start_studio(tmp_path / "a", port=port)
+    with pytest.raises(InputError, match="cannot listen on 203.0.113.9"):  # a documentation address
+        start_studio(tmp_path / "b", host="203.0.113.9")
+    assert "Errno" not in capfd.readouterr().err  # uvicorn's own bind error line is held back
+    a_file = tmp_path / "a-file"
+    a_file.write_text("not a folder")
+    done = subprocess.run([sys.executable, "app.py", "--no-browser", "--temp-dir", str(a_file)], cwd=ROOT,
+                          capture_output=True, text=True, timeout=120)
+    lines = [line for line in done.stderr.splitlines() if line.strip()]
+    assert done.returncode == 2 and len(lines) == 1, done.stderr
+    assert lines[0].startswith("error: ") and "a-file" in lines[0] and "not a folder" in lines[0], lines

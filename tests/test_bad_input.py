@@ -88,6 +88,8 @@ ARG_CASES = [
     (RELIGHT + ["--size", "0"], "--size"),
     (RELIGHT + ["--size", "big"], "--size"),
     (RELIGHT + ["--frames", "a:b"], "frame range"),
+    (RELIGHT + ["--frames", "10:5"], "the frame range '10:5' holds no frame; write START:END with 0 ≤ START < END"),
+    (RELIGHT + ["--frames=-3:2"], "the frame range '-3:2' holds no frame"),
     (RELIGHT + ["--bogus-option"], "unrecognized"),
     (["relight", "{png}"], "required"),
     (["augment", "{png}", "--seeds", "5-1"], "reversed"),

@@ -201,7 +201,7 @@ def server(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("fuzz-api")
     demo, url, _ = start_studio(tmp, max_upload_mb=50)
     client = Client(url, verbose=False)
-    yield client
+    yield client, demo
     client.close()
     demo.close()
 
@@ -215,7 +215,7 @@ def api_refuses(client, name: str, **args) -> str:
 
 
 def test_api_refuses_every_bad_file_and_number_and_keeps_serving(inputs, server):
-    client, good = server, inputs["png"]
+    (client, demo), good = server, inputs["png"]
     cases = 0
     from ui.layout import INPUT_TYPES
 
@@ -242,4 +242,7 @@ def test_api_refuses_every_bad_file_and_number_and_keeps_serving(inputs, server)
         api_refuses(client, str(overrides), **relight_args(good, **{"steps": 1, **overrides}))
         cases += 1
     assert cases >= 40
+    # Nothing half-written is left behind: every refused job's folder is gone from the studio's work folder.
+    jobs = Path(demo.studio_root) / "work" / "jobs"
+    assert jobs.is_dir() and not any(jobs.iterdir()), list(jobs.iterdir())
     assert "Done" in run_job(client, **relight_args(good, steps=1))[-1][0]

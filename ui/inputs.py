@@ -3,6 +3,7 @@ frames for a chosen range at the working or the file's own resolution, with erro
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import numpy as np
@@ -56,3 +57,16 @@ def is_video(path) -> bool:
             raise InputError(f"{Path(path).name} is a still image named like a video; give it its image "
                              "extension (.png, .jpg) and upload it again.")
     return named_video
+
+
+def whole_number(value, name: str) -> int:
+    """A whole-number field of a request (an API client may send anything): one sentence naming the
+    field for text, NaN, infinities, fractions and numbers past 2⁶³."""
+    try:
+        number = float(value)
+    except (TypeError, ValueError):
+        raise InputError(f"The {name} must be a whole number, not '{str(value)[:40]}'.") from None
+    if not math.isfinite(number) or abs(number) >= 2.0 ** 63 or number != int(number):
+        raise InputError(f"The {name} must be a whole number within range, not {number:.6g}.")
+    return int(number)
+

@@ -11,7 +11,8 @@ import gradio as gr
 from relight_core.diffusion import SAMPLERS
 from relight_core.lighting import DEFAULT_ROTATION, MAX_PITCH_DEG, MAX_TINT, NEUTRAL_KELVIN
 from ui.inputs import VIDEO_SUFFIXES
-from ui.studio import Studio, probe_choices
+from ui.probes import probe_choices
+from ui.studio import Studio
 from ui.views import CLEAR, CLEAR_COMPARE, MODE_VIEWS, MODES, RANDOM_MODE, RunOutputs, status_html
 
 INPUT_TYPES = [".png", ".jpg", ".jpeg", ".webp", ".exr", ".mp4", ".mov", ".webm"]

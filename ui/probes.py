@@ -64,3 +64,9 @@ class ProbeLibrary:
             image = preview.probe_thumbnail(lighting.load_probe(path), self.thumbnail_height)
             Image.fromarray(image).save(thumbnail)
         return ProbeEntry(path.stem, path, thumbnail)
+
+
+def probe_choices(library: ProbeLibrary) -> list[tuple[str, str]]:
+    """(thumbnail, name) items of the probe gallery; a long name may wrap after its underscores
+    (a zero-width space follows each), so every name is shown in full."""
+    return [(str(e.thumbnail), e.name.replace("_", "_\u200b")) for e in library.entries]

@@ -1,9 +1,10 @@
 """What a shared studio must not do: serve uploads as live pages, or let passwords be guessed fast.
 
-* `FileHeaders`: every `/file=` response gets `X-Content-Type-Options: nosniff`, and a file in the
-  upload/cache folder whose type could run script in the browser (HTML, SVG, XML, JS, ...) is sent
-  as a download (`Content-Disposition: attachment`, `application/octet-stream`), never inline.
-  (Gradio itself does this for the upload folder; this holds even if that folder is ever allowed.)
+* `FileHeaders`: every `/file=` response gets `X-Content-Type-Options: nosniff`, and a file from any
+  folder whose type could run script in the browser (HTML, SVG and every other XML type, JS, CSS,
+  PDF, ...) is sent as a download (`Content-Disposition: attachment`, `application/octet-stream`),
+  never inline. (Gradio itself does this for the upload folder, not for `allowed_paths`; this holds
+  for both.)
 * `LoginGuard`: the `auth` callable given to Gradio. Each client (its address) that fails to log
   in waits before its next attempt, twice as long after every failure in a row (0.5 s, 1 s, 2 s,
   … up to 30 s); attempts from one client are taken one at a time, so guessing in parallel does
@@ -31,17 +32,26 @@ _sleep = asyncio.sleep
 
 _client: contextvars.ContextVar[str] = contextvars.ContextVar("login_client", default="unknown")
 
-# Types a browser may run as a page or script if served inline from the app's origin.
-ACTIVE_TYPES = ("text/html", "image/svg+xml", "application/xhtml+xml", "text/xml", "application/xml",
-                "text/javascript", "application/javascript", "application/x-javascript", "text/css")
-ACTIVE_SUFFIXES = (".html", ".htm", ".shtml", ".xhtml", ".svg", ".svgz", ".xml", ".xsl", ".js", ".mjs",
-                   ".css", ".swf", ".pdf")
+# Types a browser may run as a page or script if served inline from the app's origin: HTML, every XML type
+# (browsers render `*+xml`, e.g. application/rdf+xml or application/xslt+xml, as a document that can hold
+# XHTML <script>), scripts, CSS, PDF, Flash and saved web pages (message/rfc822). Matched as words in the type.
+ACTIVE_TYPE_WORDS = ("html", "xml", "script", "css", "pdf", "flash", "rfc822")
+ACTIVE_SUFFIXES = (".html", ".htm", ".shtml", ".xhtml", ".xht", ".svg", ".svgz", ".xml", ".xsl", ".xslt", ".js",
+                   ".mjs", ".css", ".swf", ".pdf", ".mht", ".mhtml")
 
 
-def client_key(scope) -> str:
-    """The client's address; behind a local proxy (the share tunnel) the last X-Forwarded-For hop."""
+def is_active(content_type: str, path: str) -> bool:
+    """Whether a file with this Content-Type (or, whatever its type, this name) must not be served inline."""
+    kind = content_type.split(";")[0].strip().lower()
+    return any(word in kind for word in ACTIVE_TYPE_WORDS) or path.lower().endswith(ACTIVE_SUFFIXES)
+
+
+def client_key(scope, trust_forwarded: bool = False) -> str:
+    """The client's address. With `trust_forwarded` (only behind the share tunnel, which connects from
+    loopback) a loopback peer is keyed by its last X-Forwarded-For hop; otherwise the header is ignored,
+    so a local user cannot pick a fresh key per guess."""
     host = (scope.get("client") or ("unknown", 0))[0]
-    if host in ("127.0.0.1", "::1", "localhost"):
+    if trust_forwarded and host in ("127.0.0.1", "::1", "localhost"):
         for name, value in scope.get("headers") or ():
             if name == b"x-forwarded-for" and value.strip():
                 return value.decode("latin-1").split(",")[-1].strip() or host
@@ -51,12 +61,13 @@ def client_key(scope) -> str:
 class ClientAddress:
     """ASGI middleware: remember the client of a login request for `LoginGuard` (a context variable)."""
 
-    def __init__(self, app):
+    def __init__(self, app, trust_forwarded: bool = False):
         self.app = app
+        self.trust_forwarded = trust_forwarded  # True only behind the share tunnel (`client_key`)
 
     async def __call__(self, scope, receive, send):
         if scope["type"] == "http" and scope["path"].rstrip("/").endswith("/login"):
-            token = _client.set(client_key(scope))
+            token = _client.set(client_key(scope, self.trust_forwarded))
             try:
                 return await self.app(scope, receive, send)
             finally:
@@ -81,7 +92,7 @@ class FileHeaders:
                            if k.lower() != b"x-content-type-options"]
                 content_type = next((v.decode("latin-1").lower() for k, v in headers
                                      if k.lower() == b"content-type"), "")
-                if content_type.startswith(ACTIVE_TYPES) or path.endswith(ACTIVE_SUFFIXES):
+                if is_active(content_type, path):
                     headers = [(k, v) for k, v in headers
                                if k.lower() not in (b"content-type", b"content-disposition")]
                     headers += [(b"content-type", b"application/octet-stream"),

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import atexit
+import logging
 import os
 import shutil
 import signal
@@ -10,6 +11,8 @@ import tempfile
 import threading
 from dataclasses import dataclass
 from pathlib import Path
+
+from relight_core.errors import InputError
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
 
@@ -51,10 +54,16 @@ def prepare_environment(temp_dir: Path | None) -> Path:
     given, never `temp_dir` itself, whose other files must not become servable.
     """
     parent = None
-    if temp_dir is not None:
-        parent = Path(temp_dir)
-        parent.mkdir(parents=True, exist_ok=True)
-    root = Path(tempfile.mkdtemp(prefix="unirelight-studio-", dir=parent)).resolve()
+    try:
+        if temp_dir is not None:
+            parent = Path(temp_dir)
+            parent.mkdir(parents=True, exist_ok=True)
+        root = Path(tempfile.mkdtemp(prefix="unirelight-studio-", dir=parent)).resolve()
+    except OSError as exc:  # a file, a folder this user cannot write, a full disk
+        where = f"--temp-dir {temp_dir}" if temp_dir is not None else "the system temp folder"
+        reason = "it is a file, not a folder" if parent is not None and parent.is_file() else exc.strerror or exc
+        raise InputError(f"The studio cannot make its folder in {where} ({reason}); "
+                         "pass --temp-dir with a folder this user can write.") from None
     atexit.register(shutil.rmtree, root, ignore_errors=True)
     os.environ["GRADIO_TEMP_DIR"] = str(root / "gradio")
     os.environ.setdefault("GRADIO_ANALYTICS_ENABLED", "False")
@@ -110,11 +119,11 @@ def start(options: ServerOptions, block: bool = True):
     demo.studio_root = root  # the studio's own temp folder (tests and shutdown use it)
     local_url = share_url = None
     try:  # a SIGTERM/Ctrl+C from the moment the server may answer is a normal stop (exit 0)
-        _, local_url, share_url = demo.launch(
-            server_name=options.host, server_port=options.port, share=share, auth=auth,
+        _, local_url, share_url = _launch(
+            demo, options, server_name=options.host, server_port=options.port, share=share, auth=auth,
             inbrowser=options.inbrowser, max_file_size=f"{options.max_upload_mb}mb",
             allowed_paths=[str(studio.work_dir.resolve()), str(options.examples_dir)], prevent_thread_lock=True,
-            app_kwargs={"middleware": [Middleware(FileHeaders), Middleware(ClientAddress)]},
+            app_kwargs={"middleware": [Middleware(FileHeaders), Middleware(ClientAddress, trust_forwarded=share)]},
             show_error=True, footer_links=["api", "settings"], quiet=True, **launch_kwargs())
         print(f"* UniRelight Studio is running at {local_url} (model: {options.model}, "
               f"{studio.relighter().precision}; Ctrl+C to stop)", flush=True)
@@ -131,6 +140,33 @@ def start(options: ServerOptions, block: bool = True):
         if block:
             shutdown(demo)
     return demo, local_url, share_url
+
+
+def _launch(demo, options: ServerOptions, **kwargs):
+    """`demo.launch`, with a port that is taken or an address that is not this machine's said in one sentence
+    (Gradio raises one OSError for both: "Cannot find empty port in range: ..."). Uvicorn's own log line
+    about a failed bind is held back meanwhile: the sentence says it."""
+    uvicorn_log = logging.getLogger("uvicorn.error")
+    hold = logging.Filter("held back while launching")  # passes no uvicorn.error record
+    uvicorn_log.addFilter(hold)
+    try:
+        return demo.launch(**kwargs)
+    except OSError as exc:
+        from gradio.http_server import INITIAL_PORT_VALUE, TRY_NUM_PORTS
+
+        ports = (f"port {options.port}" if options.port is not None
+                 else f"any port from {INITIAL_PORT_VALUE} to {INITIAL_PORT_VALUE + TRY_NUM_PORTS - 1}")
+        raise InputError(f"The studio cannot listen on {options.host} at {ports} ({_reason(exc)}); pass a free "
+                         "--port, and a --host that is one of this machine's addresses.") from None
+    finally:
+        uvicorn_log.removeFilter(hold)
+
+
+def _reason(exc: OSError) -> str:
+    if exc.strerror:
+        return exc.strerror.lower()
+    text = str(exc)
+    return "in use or not available" if text.startswith("Cannot find empty port") else text.split(". ")[0]
 
 
 def shutdown(demo) -> None:

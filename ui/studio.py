@@ -21,7 +21,7 @@ from relight_core import lighting, media, outputs, preview
 from relight_core.colour import colour_science
 from relight_core.errors import InputError
 from relight_core.pipeline import ChunkDone, Finished, Progress, Relighter, RelightRequest
-from ui.inputs import frame_count, full_frames, is_video, load_frames
+from ui.inputs import frame_count, full_frames, is_video, load_frames, whole_number
 from ui.probes import ProbeLibrary
 from ui.views import (CLEAR, CLEAR_COMPARE, MODE_VIEWS, MODES, RANDOM_MODE, RunOutputs, _duration,
                       _progress_text, field_error, field_note, precision_note, status_html)
@@ -140,6 +140,10 @@ class Studio:
         if not path:
             return "Upload an image or a video to see the time estimate."
         try:
+            steps, num_seeds = whole_number(steps, "number of steps"), whole_number(num_seeds, "number of seeds")
+        except InputError as exc:
+            return f"No time estimate: {exc}"
+        try:
             frames = load_frames(path, frame_start, frame_start, size).frames  # one frame: the size
             count = frame_count(path, frame_start, frame_end)
             relighter = self.relighter(model)
@@ -240,11 +244,16 @@ class Studio:
         stop.clear()
         job = self._job_dir("jobs")
         try:
+            whole = {name: whole_number(value, label) for name, value, label in (
+                ("num_seeds", num_seeds, "number of seeds"), ("frame_start", frame_start, "first frame"),
+                ("frame_end", frame_end, "last frame"), ("size", size, "working size"),
+                ("steps", steps, "number of steps"), ("seed", seed, "seed"))}
             yield from self._run(job, stop, path, MODES.get(mode, "relight"), probe_name, probe_upload,
                                  float(rotation), 2.0 ** float(exposure), bool(rotate_light),
-                                 (float(sweep_start), float(sweep_end)), int(num_seeds), frame_start,
-                                 frame_end, int(size), int(steps), sampler, int(seed), float(guidance), model,
-                                 float(temperature), (float(camera_pitch), float(camera_roll)), float(tint))
+                                 (float(sweep_start), float(sweep_end)), whole["num_seeds"], whole["frame_start"],
+                                 whole["frame_end"], whole["size"], whole["steps"], sampler, whole["seed"],
+                                 float(guidance), model, float(temperature), (float(camera_pitch), float(camera_roll)),
+                                 float(tint))
         except InputError as exc:
             raise _fail(exc, path, probe_upload) from exc
         finally:
@@ -386,9 +395,3 @@ class Studio:
     def _save_preview(job: Path, name: str, frame: np.ndarray) -> str:
         # A fresh name per step: the browser would otherwise keep showing a cached image.
         return str(outputs.save_still(job / f"{name}-{uuid.uuid4().hex[:8]}", frame))
-
-
-def probe_choices(library: ProbeLibrary) -> list[tuple[str, str]]:
-    """(thumbnail, name) items of the probe gallery; a long name may wrap after its underscores
-    (a zero-width space follows each), so every name is shown in full."""
-    return [(str(e.thumbnail), e.name.replace("_", "_\u200b")) for e in library.entries]
