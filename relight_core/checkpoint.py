@@ -49,6 +49,7 @@ class ModelSpec:
     trained: bool = True                 # False for a preset with random weights
     lighting_size: int | None = None     # probes seen through a size² panorama (lighting.lowpass_panorama)
     residual: bool = False               # relit/albedo diffused as offsets from the input (ConditionedDenoiser)
+    residual_gain: tuple[float, float] = (1.0, 1.0)  # (relit, albedo) offset scale, fitted by training.calibrate
     notes: dict = field(default_factory=dict)
 
     def to_json(self) -> dict:
@@ -68,6 +69,8 @@ class ModelSpec:
         check_precision(kwargs.get("precision", "auto"))
         dit_fields = {f.name for f in dataclasses.fields(DiTConfig)}
         kwargs["dit"] = DiTConfig(**{k: _tuples(v) for k, v in data["dit"].items() if k in dit_fields})
+        if "residual_gain" in kwargs:
+            kwargs["residual_gain"] = tuple(float(g) for g in kwargs["residual_gain"])
         return cls(**kwargs)
 
 

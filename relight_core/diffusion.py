@@ -200,6 +200,9 @@ class ConditionedDenoiser:
     Sampling σ must stay above `augment_sigma` (the default σ_min 0.002 does).
     With `residual=True` the frames to generate are handed over as offsets from the input clip and
     the input is added back to x0 (`residual_base`): EDM on relit − input and albedo − input.
+    `residual_gain` (relit, albedo) scales the offset x0 of each generated clip before the input is
+    added back: a calibration of a model whose offsets overshoot (`training.calibrate`); (1, 1) in
+    training, and for a one-step sampler exactly input + gain · (the network's offset).
     """
 
     def __init__(self, denoiser: Denoiser,
@@ -208,9 +211,11 @@ class ConditionedDenoiser:
                  augment_sigma: float = 0.001,      # released condition_video_augment_sigma_in_inference
                  sigma_data: float = 0.5,
                  seed: int = 1,
-                 residual: bool = False):           # relit/albedo diffused as offsets from the input
+                 residual: bool = False,            # relit/albedo diffused as offsets from the input
+                 residual_gain: tuple[float, float] = (1.0, 1.0)):
         self.denoiser = denoiser
         self.residual = residual
+        self.residual_gain = tuple(float(g) for g in residual_gain)
         self.condition_latent = condition_latent
         self.condition_mask = condition_mask
         self.augment_sigma = augment_sigma
@@ -230,8 +235,17 @@ class ConditionedDenoiser:
             x = x - base
         x0 = self.denoiser(torch.where(given, x_cond, x), sigma, condition_mask=self.condition_mask, **extra)
         if base is not None:
+            if self.residual_gain != (1.0, 1.0):
+                x0 = x0 * self._gain(x0)
             x0 = x0 + base
         return torch.where(given, self.condition_latent.to(x0.dtype), x0)
+
+    def _gain(self, x0: torch.Tensor) -> torch.Tensor:
+        """[1,1,3t,1,1]: 1 on the input clip, the relit and albedo gains on their clips."""
+        t = x0.shape[2] // NUM_CLIPS
+        gains = torch.ones(NUM_CLIPS, dtype=x0.dtype, device=x0.device)
+        gains[1:] = torch.tensor(self.residual_gain, dtype=x0.dtype, device=x0.device)
+        return gains.repeat_interleave(t).view(1, 1, -1, 1, 1)
 
     def residual_base(self, dtype: torch.dtype) -> torch.Tensor:
         """[input | input | input] on the frames to generate, 0 elsewhere: a residual model diffuses

@@ -142,7 +142,8 @@ class Relighter(CostModel):
             cond_args = {"lighting": lighting_latents}
             uncond_args = {"lighting": torch.zeros_like(lighting_latents)}
             denoiser = ConditionedDenoiser(guided(self.denoiser, cond_args, uncond_args, request.guidance),
-                                           condition, mask, residual=self.spec.residual)
+                                           condition, mask, residual=self.spec.residual,
+                                           residual_gain=self.spec.residual_gain)
             sampler = SAMPLERS[sampler_name]
 
             def work(emit, _index=index, _t=t, _denoiser=denoiser, _noise=noise):

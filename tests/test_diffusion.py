@@ -271,6 +271,22 @@ def test_residual_denoiser_sees_the_offset_and_adds_the_input_back():
     assert torch.equal(out[:, :, 4], condition[:, :, 4])       # the given frame is pinned as before
 
 
+def test_residual_gain_scales_each_generated_clips_offset_and_nothing_else():
+    condition, mask = _conditioned_setup()
+    mask[:, :, 4] = 1.0                                       # a given albedo frame stays pinned
+    condition[:, :, 4] = 3.0
+    offset = torch.randn(1, 16, 6, 2, 2)
+    inner = lambda x, sigma, **_: offset                      # noqa: E731 — the network's x0 offset
+    plain = ConditionedDenoiser(inner, condition, mask, residual=True)
+    gained = ConditionedDenoiser(inner, condition, mask, residual=True, residual_gain=(0.5, 0.25))
+    x, sigma = torch.randn(1, 16, 6, 2, 2), torch.tensor([80.0])
+    a, b = plain(x, sigma), gained(x, sigma)
+    base = condition[:, :, :2]
+    torch.testing.assert_close(b[:, :, 2:4] - base, 0.5 * (a[:, :, 2:4] - base))      # relit: half the offset
+    torch.testing.assert_close(b[:, :, 5] - base[:, :, 1], 0.25 * (a[:, :, 5] - base[:, :, 1]))  # albedo
+    assert torch.equal(b[:, :, :2], condition[:, :, :2]) and torch.equal(b[:, :, 4], condition[:, :, 4])
+
+
 def test_tiny_joint_model_samples_end_to_end():
     from relight_core.dit import DIT_PRESETS, JointDiT, assemble_inputs
 

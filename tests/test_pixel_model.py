@@ -2,6 +2,7 @@
 image packs and the fast trainer, end to end through a saved model folder and the Relighter."""
 
 import json
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -157,6 +158,23 @@ def test_a_zero_head_residual_model_returns_its_input_and_training_resumes(tmp_p
     np.testing.assert_allclose(result.albedo, frames, atol=0.02)
     plain, _, _ = load_model(tmp_path / "first" / "model")
     assert not plain.residual
+    # Calibration (training.calibrate) measures the offset gains on items and writes the best into
+    # config.json, which Relighter then applies; a gain of 0 returns the input exactly.
+    from relight_core.training import calibrate
+
+    data = tmp_path / "data"
+    model = tmp_path / "res" / "model"
+    assert calibrate.main(["--model", str(model), "--data", str(data), "--split", "train", "--items", "2",
+                           "--write"]) == 0
+    written = json.loads((model / "config.json").read_text())
+    assert len(written["residual_gain"]) == 2 and set(written["notes"]["calibration"]["table"]) == {
+        str(g) for g in calibrate.GRID}
+    assert load_model(model)[0].residual_gain == tuple(written["residual_gain"])
+    zero = Relighter(replace(spec, residual_gain=(0.0, 0.0)), dit, tok)
+    result = zero.relight(RelightRequest(frames=frames, probe=np.ones((16, 32, 3), np.float32)))
+    np.testing.assert_allclose(result.relit, frames, atol=1e-5)
+    assert calibrate.best_gains({0.5: {"relit": 20.0, "albedo": 18.0}, 1.0: {"relit": 19.0, "albedo": 19.0}}) \
+        == (0.5, 1.0)
     # The first run left a checkpoint (weights, EMA, optimizer, generator, step, time used): started
     # again on the same folder it resumes there and, its time spent, stops without a new step.
     again = train(FastConfig(out=tmp_path / "first", minutes=0.02, **base))
