@@ -200,6 +200,7 @@ def test_whole_number_fields_of_a_request_are_one_sentence(value, words):
         whole_number(value, "number of steps")
     assert words in str(caught.value) and len(str(caught.value)) < 100
     assert whole_number(7.0, "seed") == 7 and whole_number("12", "seed") == 12
+    assert whole_number(2 ** 63 - 1, "seed") == 2 ** 63 - 1  # the largest seed, exactly
 
 
 def test_x_forwarded_for_keys_a_client_only_behind_the_share_tunnel():

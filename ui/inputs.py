@@ -62,6 +62,10 @@ def is_video(path) -> bool:
 def whole_number(value, name: str) -> int:
     """A whole-number field of a request (an API client may send anything): one sentence naming the
     field for text, NaN, infinities, fractions and numbers past 2⁶³."""
+    if isinstance(value, str) and value.strip().lstrip("+-").isdigit():
+        value = int(value)
+    if isinstance(value, int) and not isinstance(value, bool) and abs(value) < 2 ** 63:
+        return value  # exact: a float would round 2⁶³ − 1, the largest seed, up to 2⁶³
     try:
         number = float(value)
     except (TypeError, ValueError):
