@@ -4,7 +4,12 @@ for the released Cosmos tokenizer files."""
 
 from __future__ import annotations
 
+import signal
 import socket
+import subprocess
+import sys
+import time
+from collections.abc import Callable
 from fractions import Fraction
 from pathlib import Path
 
@@ -280,3 +285,24 @@ def make_audio_only_mp4(path: Path) -> Path:
         for packet in [*sound.encode(frame), *sound.encode(None)]:
             container.mux(packet)
     return path
+
+
+def terminate_when(args: list[str], ready: Callable[[], bool], what: str, settle_s: float = 0.0,
+                   cwd: Path = REPO) -> tuple[int, str]:
+    """Run `python -m relight_core ARGS`, send SIGTERM once `ready()` holds (and `settle_s` more
+    seconds have passed); (exit code, stderr). `what` names the awaited state in a failure."""
+    proc = subprocess.Popen([sys.executable, "-m", "relight_core", *map(str, args)], cwd=cwd,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 180
+        while not ready():
+            assert proc.poll() is None, proc.communicate()
+            assert time.monotonic() < deadline, f"the command never {what}"
+            time.sleep(0.02)
+        time.sleep(settle_s)
+        proc.send_signal(signal.SIGTERM)
+        _, err = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    return proc.returncode, err

@@ -10,8 +10,6 @@ from __future__ import annotations
 import os
 import re
 import signal
-import subprocess
-import sys
 import time
 from pathlib import Path
 
@@ -24,7 +22,7 @@ from relight_core import lighting, media
 from relight_core.arguments import MAX_ROTATION_DEG, MAX_SEED
 from relight_core.cli import main
 from relight_core.errors import InputError
-from tests.factory import make_png, make_sun_probe
+from tests.factory import make_png, make_sun_probe, terminate_when
 
 ROOT = Path(__file__).resolve().parent.parent
 FAST = ["--model", "tiny", "--steps", "1", "--size", "48"]
@@ -240,21 +238,9 @@ def test_written_files_are_0644_not_private(files, tmp_path, capfd):
 
 def test_sigterm_leaves_no_partial_folder(files, tmp_path):
     out = tmp_path / "out"
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "relight_core", "relight", str(files["png"]), "--probe", str(files["probe"]),
-         "--out", str(out), "--model", "tiny", "--steps", "1000", "--size", "64"],
-        cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    try:
-        deadline = time.monotonic() + 180
-        while not list(out.glob(".partial-*")):  # staged outputs: the job is running
-            assert proc.poll() is None, proc.communicate()
-            assert time.monotonic() < deadline, "the CLI never started sampling"
-            time.sleep(0.05)
-        proc.send_signal(signal.SIGTERM)
-        _, err = proc.communicate(timeout=120)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-    assert proc.returncode == 128 + signal.SIGTERM, err
+    code, err = terminate_when(  # staged outputs: the job is sampling
+        ["relight", files["png"], "--probe", files["probe"], "--out", out, "--model", "tiny", "--steps", "1000",
+         "--size", "64"], lambda: bool(list(out.glob(".partial-*"))), "started sampling")
+    assert code == 128 + signal.SIGTERM, err
     assert "stopped." in err and "Traceback" not in err
     assert list(out.iterdir()) == []

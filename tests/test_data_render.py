@@ -1,9 +1,10 @@
 """Mitsuba rendering: the envmap convention, shared geometry across lights, albedo = base colour;
-render-data on Ray: the same files as one process, a failed scene alone, resume."""
+render-data on Ray: the same files as one process, a failed scene alone, resume; SIGTERM stops it."""
 
 import csv
 import json
 import math
+import signal
 
 import numpy as np
 import pytest
@@ -17,6 +18,7 @@ from relight_core.data.probes import ProbeChoice  # noqa: E402
 from relight_core.data.render import SceneRenderer, init_mitsuba, to_mitsuba_bitmap  # noqa: E402
 from relight_core.data.scenes import (CameraSpec, MaterialSpec, ObjectSpec, SceneSpec,  # noqa: E402
                                       camera_to_world, sample_scene)
+from tests.factory import terminate_when  # noqa: E402
 from tests.test_batch import ray_address as shared_ray  # noqa: E402
 
 ray_address = shared_ray  # the Ray instance test_batch.py starts, shared with this module
@@ -186,3 +188,16 @@ def test_render_data_on_ray_writes_the_same_files_fails_a_scene_alone_and_resume
     assert "3 scenes: 2 done, 1 to run." in stderr
     assert {p: p.stat().st_mtime_ns for p in stamps} == stamps  # finished scenes were not rendered again
     assert _tree(out) == expected  # every file, manifest included, as one process writes them
+
+
+def test_sigterm_inside_mitsubas_render_stops_the_run_instead_of_failing_the_scene(tmp_path):
+    """Dr.Jit hands a signal handler's exception back as a RuntimeError caused by it; a SIGTERM that
+    lands in `mi.render` must stop render-data (exit 143, "stopped."), not fail one scene and go on."""
+    out = tmp_path / "data"
+    first_light = out / "train" / "scene_000000" / "env0"  # written after light 0, before light 1's render
+    code, err = terminate_when(  # ~1–3 s a light at 400 spp: 0.3 s later the signal lands inside the render
+        ["render-data", "--out", out, "--scenes=4", "--frames=1", "--size=96", "--spp=400", "--workers=1"],
+        first_light.exists, "started rendering", settle_s=0.3)
+    assert code == 128 + signal.SIGTERM, err
+    assert "stopped." in err and "failed" not in err and "Traceback" not in err, err
+    assert not (out / "train" / "failed.csv").exists()

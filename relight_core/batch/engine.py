@@ -48,6 +48,21 @@ class UnitResult:
     cpu_seconds: float = 0.0  # CPU seconds of its worker process (0 when not measured)
 
 
+def stop_if_interrupted(exc: BaseException) -> None:
+    """Re-raise a Ctrl+C or SIGTERM that a native library wrapped in an error of its own.
+
+    A signal handler's exception raised while Dr.Jit runs Mitsuba's render comes back as a RuntimeError
+    caused by it; caught as a unit's failure, a SIGTERM would fail one scene and the run would go on.
+    """
+    seen: set[int] = set()
+    cause: BaseException | None = exc
+    while cause is not None and id(cause) not in seen:
+        if isinstance(cause, KeyboardInterrupt):
+            raise cause
+        seen.add(id(cause))
+        cause = cause.__cause__ or cause.__context__
+
+
 def sentence(exc: BaseException, noun: str = "row") -> str:
     """The one-sentence reason a unit failed with `exc` (InputError's text, a disk error, a bug)."""
     if isinstance(exc, InputError):

@@ -22,7 +22,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from relight_core.batch.engine import (ModelWorker, check_reachable, connect, locked, run_units, sentence,
-                                       sigterm_kept, worker_plan)
+                                       sigterm_kept, stop_if_interrupted, worker_plan)
 from relight_core.batch.manifest import (DONE, FAILED, ManifestRow, RowResult, append_result, is_finished,
                                          read_manifest, read_results, write_results)
 from relight_core.batch.progress import Progress
@@ -84,6 +84,7 @@ class RowWorker(ModelWorker):
                 shutil.rmtree(staging, ignore_errors=True)
             return RowResult(row, DONE, time.perf_counter() - started, tuple(f"{row}/{p.name}" for p in written))
         except Exception as exc:  # a bad input, a full disk, a bug: this row's result
+            stop_if_interrupted(exc)
             return RowResult(row, FAILED, time.perf_counter() - started, (), sentence(exc, "row"))
 
 

@@ -18,7 +18,8 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from relight_core.batch.engine import DONE, FAILED, ModelWorker, UnitResult, engine, locked, sentence, worker_plan
+from relight_core.batch.engine import (DONE, FAILED, ModelWorker, UnitResult, engine, locked, sentence,
+                                      stop_if_interrupted, worker_plan)
 from relight_core.batch.samples import DataSummary, Sample, run_samples
 from relight_core.data.dataset import is_finished, write_frame, write_meta
 from relight_core.errors import InputError
@@ -55,6 +56,7 @@ class LabelWorker(ModelWorker):
             label(self.relighter, path, Path(sample_dir), self.settings)
             return UnitResult(path.name, DONE, time.perf_counter() - started)
         except Exception as exc:  # an unreadable file, a full disk, a bug: this file's result
+            stop_if_interrupted(exc)
             return UnitResult(path.name, FAILED, time.perf_counter() - started, sentence(exc, "video"))
 
 

@@ -17,7 +17,8 @@ from pathlib import Path
 
 import numpy as np
 
-from relight_core.batch.engine import DONE, FAILED, UnitResult, engine, locked, sentence, worker_plan
+from relight_core.batch.engine import (DONE, FAILED, UnitResult, engine, locked, sentence, stop_if_interrupted,
+                                      worker_plan)
 from relight_core.batch.samples import DataSummary, Sample, run_samples
 from relight_core.colour import linear_to_srgb
 from relight_core.data.dataset import is_finished, write_frame, write_meta
@@ -85,6 +86,7 @@ def render_unit(config: RenderConfig, index: int) -> UnitResult:
         render_scene(spec, config.size, config.spp, scene_dir(config, index))
         status, error = DONE, ""
     except Exception as exc:  # a full disk, a bug in one scene: this scene's result
+        stop_if_interrupted(exc)  # but a SIGTERM inside Mitsuba's render stops the run
         status, error = FAILED, sentence(exc, "scene")
     return UnitResult(name, status, time.perf_counter() - wall, error, time.process_time() - cpu)
 
