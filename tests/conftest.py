@@ -23,3 +23,24 @@ def released_files(tmp_path):
     torch.jit.script(FakeCosmosEncoder()).save(str(tokenizer / "encoder.jit"))
     torch.jit.script(FakeCosmosDecoder()).save(str(tokenizer / "decoder.jit"))
     return tmp_path / "model.pt", tokenizer, ours
+
+
+_shared_ray = []  # [(the connect() context, its address)] while the shared instance runs
+
+
+@pytest.fixture(scope="module")
+def ray_address(request):
+    """One local Ray instance (2 CPUs) for every module that uses this fixture (test_batch.py,
+    test_data_autolabel.py, test_data_render.py): started by the first, stopped after
+    the last, so the session pays Ray's start once and no Ray process idles beside the other modules.
+    Runs in this process (batch, render-data, autolabel) reuse its connection."""
+    from relight_core.batch import connect
+
+    if not _shared_ray:
+        context = connect(num_cpus=2)
+        ray = context.__enter__()
+        _shared_ray.append((context, ray.get_runtime_context().gcs_address))
+    yield _shared_ray[0][1]
+    users = [item.module for item in request.session.items if "ray_address" in item.fixturenames]
+    if not users or users[-1] is request.module:
+        _shared_ray.pop()[0].__exit__(None, None, None)

@@ -4,6 +4,8 @@ for the released Cosmos tokenizer files."""
 
 from __future__ import annotations
 
+import contextlib
+import io
 import signal
 import socket
 import subprocess
@@ -306,3 +308,13 @@ def terminate_when(args: list[str], ready: Callable[[], bool], what: str, settle
         if proc.poll() is None:
             proc.kill()
     return proc.returncode, err
+
+
+def main_capturing(argv: list[str]) -> tuple[int, str, str]:
+    """`python -m relight_core ARGV` in this process: (exit code, stdout, stderr)."""
+    from relight_core.cli import main
+
+    stdout, stderr = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(stdout), contextlib.redirect_stderr(stderr):
+        code = main(argv)
+    return code, stdout.getvalue(), stderr.getvalue()

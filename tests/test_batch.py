@@ -1,10 +1,8 @@
 """`python -m relight_core batch` on a real local Ray instance (2 CPUs, the tiny preset): good rows
 done, bad rows failed alone with their sentence, finished rows skipped, a killed run resumed.
-The Ray instance (`ray_address`) is shared with the render-data and autolabel tests."""
+The Ray instance (`ray_address`, conftest.py) is shared with the render-data and autolabel tests."""
 
-import contextlib
 import csv
-import io
 import signal
 import subprocess
 import sys
@@ -17,33 +15,12 @@ import pytest
 from PIL import Image
 
 from relight_core.cli import main
-from tests.factory import make_mp4, make_png, make_sun_probe
+from tests.factory import main_capturing, make_mp4, make_png, make_sun_probe
 
 ROOT = Path(__file__).resolve().parent.parent
 FAST = ["--model", "tiny", "--steps", "1", "--size", "32"]
 TRUNCATED = "bad.png is damaged or truncated (image file is truncated); re-export or re-download it."
 NOT_A_PROBE = "The light probe photo0.png is not an OpenEXR or Radiance HDR file; use .exr or .hdr."
-
-
-_shared_ray = []  # [(the connect() context, its address)] while the shared instance runs
-
-
-@pytest.fixture(scope="module")
-def ray_address(request):
-    """One local Ray instance (2 CPUs) for every module that uses this fixture (this one,
-    test_data_autolabel.py and test_data_render.py import it): started by the first, stopped after
-    the last, so the session pays Ray's start once and no Ray process idles beside the other modules.
-    Runs in this process (batch, render-data, autolabel) reuse its connection."""
-    from relight_core.batch import connect
-
-    if not _shared_ray:
-        context = connect(num_cpus=2)
-        ray = context.__enter__()
-        _shared_ray.append((context, ray.get_runtime_context().gcs_address))
-    yield _shared_ray[0][1]
-    users = [item.module for item in request.session.items if "ray_address" in item.fixturenames]
-    if not users or users[-1] is request.module:
-        _shared_ray.pop()[0].__exit__(None, None, None)
 
 
 @pytest.fixture(scope="module")
@@ -84,15 +61,8 @@ def first_run(inputs, ray_address, tmp_path_factory):
         "photo2.png,relight,sun.exr,east,",
     ])
     out = tmp_path_factory.mktemp("batch-out")
-    code = _main_capturing(["batch", str(manifest), "--out", str(out), "--workers", "2", *FAST])
+    code = main_capturing(["batch", str(manifest), "--out", str(out), "--workers", "2", *FAST])
     return out, *code
-
-
-def _main_capturing(argv):
-    stdout, stderr = io.StringIO(), io.StringIO()
-    with contextlib.redirect_stdout(stdout), contextlib.redirect_stderr(stderr):
-        code = main(argv)
-    return code, stdout.getvalue(), stderr.getvalue()
 
 
 def test_good_rows_are_done_and_each_bad_row_fails_alone_with_its_sentence(first_run):
@@ -129,13 +99,13 @@ def test_a_rerun_skips_finished_rows(first_run, inputs):
     out, *_ = first_run
     before = {p: p.stat().st_mtime_ns for p in out.glob("*/*")}
     results = (out / "results.csv").read_text()
-    code, _, stderr = _main_capturing(["batch", str(inputs / "first.csv"), "--out", str(out), *FAST])
+    code, _, stderr = main_capturing(["batch", str(inputs / "first.csv"), "--out", str(out), *FAST])
     assert code == 1
     assert "7 rows: 4 done, 3 failed before, 0 to run." in stderr
     assert {p: p.stat().st_mtime_ns for p in out.glob("*/*")} == before
     assert (out / "results.csv").read_text() == results
     # A failed row is retried alone: it fails again with the same sentence, and nothing else runs.
-    code, _, stderr = _main_capturing(["batch", str(inputs / "first.csv"), "--out", str(out), "--rows", "7", *FAST])
+    code, _, stderr = main_capturing(["batch", str(inputs / "first.csv"), "--out", str(out), "--rows", "7", *FAST])
     assert code == 1 and "1 to run" in stderr
     assert _results(out)[7]["error"] == "Its rotation cell is wrong: 'east' is not a number."
     assert {p: p.stat().st_mtime_ns for p in out.glob("*/*")} == before
@@ -212,7 +182,7 @@ def test_a_killed_run_resumes_where_it_stopped(inputs, ray_address, tmp_path):
     stamps = {row: (out / str(row) / "relit.png").stat().st_mtime_ns for row in finished}
 
     late.write_bytes((inputs / "photo1.png").read_bytes())
-    code, _, stderr = _main_capturing(["batch", str(manifest), "--out", str(out), "--retry-failed", *FAST])
+    code, _, stderr = main_capturing(["batch", str(manifest), "--out", str(out), "--retry-failed", *FAST])
     assert code == 0, stderr
     results = _results(out)
     assert sorted(results) == list(range(1, 11)) and {r["status"] for r in results.values()} == {"done"}

@@ -10,10 +10,7 @@ import torch
 
 from relight_core import media
 from relight_core.data.dataset import RelightDataset
-from tests.factory import make_mp4
-from tests.test_batch import _main_capturing, ray_address as shared_ray
-
-ray_address = shared_ray  # the Ray instance test_batch.py starts, shared with this module
+from tests.factory import main_capturing, make_mp4
 
 FAST = ["--model", "tiny", "--size", "32", "--steps", "1"]
 NOT_MEDIA = "{} is not a supported image or video; use PNG, JPEG, WebP, EXR, HDR, MP4, MOV or WebM."
@@ -27,7 +24,7 @@ def test_autolabel_writes_video_albedo_pairs_in_the_dataset_format(tmp_path):
     media.save_image(videos / "still.png", rng.random((32, 32, 3)).astype(np.float32))
     (videos / "notes.txt").write_text("not a video")
     # One worker and no --ray-address: in this process, without starting Ray.
-    code, stdout, stderr = _main_capturing(["autolabel", str(videos), "--out", str(tmp_path / "out"), *FAST,
+    code, stdout, stderr = main_capturing(["autolabel", str(videos), "--out", str(tmp_path / "out"), *FAST,
                                             "--workers", "1"])
     assert code == 1, stderr  # notes.txt failed
     assert stdout.strip() == str(tmp_path / "out" / "real" / "manifest.json")
@@ -54,7 +51,7 @@ def test_autolabel_on_ray_labels_good_videos_reports_a_corrupt_one_and_skips_fin
     out = tmp_path / "out"
     argv = ["autolabel", str(videos), "--out", str(out), *FAST, "--ray-address", ray_address, "--workers", "2"]
 
-    code, _, stderr = _main_capturing(argv)
+    code, _, stderr = main_capturing(argv)
     assert code == 1, stderr
     sentence = NOT_MEDIA.format("broken.mp4")
     assert f"broken.mp4 failed: {sentence}" in stderr and "Traceback" not in stderr
@@ -67,7 +64,7 @@ def test_autolabel_on_ray_labels_good_videos_reports_a_corrupt_one_and_skips_fin
     assert len(RelightDataset(out, "real")) == 2
 
     stamps = {p: p.stat().st_mtime_ns for p in (out / "real").glob("real_*/**/*")}
-    code, _, stderr = _main_capturing(argv)
+    code, _, stderr = main_capturing(argv)
     assert code == 1 and "3 videos: 2 done, 1 to run." in stderr
     assert f"broken.mp4 failed: {sentence}" in stderr
     assert {p: p.stat().st_mtime_ns for p in stamps} == stamps  # the labelled videos were not redone

@@ -18,10 +18,8 @@ from relight_core.data.probes import ProbeChoice  # noqa: E402
 from relight_core.data.render import SceneRenderer, init_mitsuba, to_mitsuba_bitmap  # noqa: E402
 from relight_core.data.scenes import (CameraSpec, MaterialSpec, ObjectSpec, SceneSpec,  # noqa: E402
                                       camera_to_world, sample_scene)
-from tests.factory import terminate_when  # noqa: E402
-from tests.test_batch import ray_address as shared_ray  # noqa: E402
+from tests.factory import main_capturing, terminate_when  # noqa: E402
 
-ray_address = shared_ray  # the Ray instance test_batch.py starts, shared with this module
 
 GREY = MaterialSpec(base_color=(0.5, 0.5, 0.5), texture=None, texture_repeat=1.0, roughness=0.8,
                     metallic=0.0, specular=0.5, transmission=0.0)
@@ -148,10 +146,8 @@ def _tree(root):
 
 
 def _render_data(out, *flags):
-    from tests.test_batch import _main_capturing
-
     argv = ["render-data", "--out", str(out), *[f"--{k}={v}" for k, v in RUN.items()], *flags]
-    return _main_capturing(argv)
+    return main_capturing(argv)
 
 
 def test_render_data_on_ray_writes_the_same_files_fails_a_scene_alone_and_resumes(ray_address, tmp_path):
