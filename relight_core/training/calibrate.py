@@ -8,7 +8,7 @@ here on **training** items — never on the items it is then reported on — by 
 PSNR (per-channel scale fit on the foreground mask, `evaluation.metrics`), among a grid that starts
 at 0 (the input returned unchanged). Sampling runs through `Relighter` as users run it.
 
-    python -m relight_core.training.calibrate --model DIR --data ~/.cache/unirelight-studio/data --items 16
+    python -m relight_core.training.calibrate --model DIR --data ~/.cache/unirelight-studio/data --items 48
     python -m relight_core.training.calibrate ... --write     # also store the gains in DIR/config.json
 """
 
@@ -58,7 +58,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--model", required=True, help="a residual model folder")
     parser.add_argument("--data", type=Path, required=True, help="render-data output (its train split is used)")
     parser.add_argument("--split", default="train")
-    parser.add_argument("--items", type=int, default=16, help="items spread over the split")
+    parser.add_argument("--items", type=int, default=48,
+                        help="items spread over the split (16 proved too few to choose a gain)")
     parser.add_argument("--write", action="store_true", help="store the gains in the model's config.json")
     args = parser.parse_args(argv)
 
