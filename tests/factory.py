@@ -290,19 +290,19 @@ def make_audio_only_mp4(path: Path) -> Path:
 
 
 def terminate_when(args: list[str], ready: Callable[[], bool], what: str, settle_s: float = 0.0,
-                   cwd: Path = REPO) -> tuple[int, str]:
-    """Run `python -m relight_core ARGS`, send SIGTERM once `ready()` holds (and `settle_s` more
+                   cwd: Path = REPO, sig: int = signal.SIGTERM, timeout_s: float = 180) -> tuple[int, str]:
+    """Run `python -m relight_core ARGS`, send `sig` once `ready()` holds (and `settle_s` more
     seconds have passed); (exit code, stderr). `what` names the awaited state in a failure."""
     proc = subprocess.Popen([sys.executable, "-m", "relight_core", *map(str, args)], cwd=cwd,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
-        deadline = time.monotonic() + 180
+        deadline = time.monotonic() + timeout_s
         while not ready():
             assert proc.poll() is None, proc.communicate()
             assert time.monotonic() < deadline, f"the command never {what}"
             time.sleep(0.02)
         time.sleep(settle_s)
-        proc.send_signal(signal.SIGTERM)
+        proc.send_signal(sig)
         _, err = proc.communicate(timeout=120)
     finally:
         if proc.poll() is None:

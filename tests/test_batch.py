@@ -4,9 +4,6 @@ The Ray instance (`ray_address`, conftest.py) is shared with the render-data and
 
 import csv
 import signal
-import subprocess
-import sys
-import time
 from pathlib import Path
 
 import av
@@ -15,9 +12,8 @@ import pytest
 from PIL import Image
 
 from relight_core.cli import main
-from tests.factory import main_capturing, make_mp4, make_png, make_sun_probe
+from tests.factory import main_capturing, make_mp4, make_png, make_sun_probe, terminate_when
 
-ROOT = Path(__file__).resolve().parent.parent
 FAST = ["--model", "tiny", "--steps", "1", "--size", "32"]
 TRUNCATED = "bad.png is damaged or truncated (image file is truncated); re-export or re-download it."
 NOT_A_PROBE = "The light probe photo0.png is not an OpenEXR or Radiance HDR file; use .exr or .hdr."
@@ -164,19 +160,8 @@ def test_a_killed_run_resumes_where_it_stopped(inputs, ray_address, tmp_path):
                                                  *[f"{inputs / f'photo{i % 3}.png'},{inputs / 'sun.exr'}"
                                                    for i in range(9)]])
     out = tmp_path / "out"
-    command = [sys.executable, "-m", "relight_core", "batch", str(manifest), "--out", str(out),
-               "--ray-address", ray_address, "--workers", "1", *FAST]
-    process = subprocess.Popen(command, cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
-    deadline = time.monotonic() + 240
-    try:
-        while not _done_rows(out):
-            assert process.poll() is None, process.stderr.read()
-            assert time.monotonic() < deadline, "no row finished in time"
-            time.sleep(0.02)
-    finally:
-        process.send_signal(signal.SIGKILL)
-        process.wait()
-        process.stderr.close()
+    terminate_when(["batch", manifest, "--out", out, "--ray-address", ray_address, "--workers", "1", *FAST],
+                   lambda: bool(_done_rows(out)), "finished a row", sig=signal.SIGKILL, timeout_s=240)
     finished = _done_rows(out)
     assert 1 <= len(finished) < 9, "the run was not stopped halfway"
     stamps = {row: (out / str(row) / "relit.png").stat().st_mtime_ns for row in finished}
