@@ -39,6 +39,7 @@ from relight_core import lighting
 from relight_core.checkpoint import CONFIG_FILE, DIT_FILE, ModelSpec
 from relight_core.diffusion import ConditionedDenoiser, EDMPrecond, get_sigmas_karras, sample_res2ab
 from relight_core.dit import DiTConfig, JointDiT, pack_lighting
+from relight_core.precision import resolve_precision
 from relight_core.tokenizer import PixelTokenizer
 from relight_core.training.loop import EMA, make_optimizer
 from relight_core.training.pack import load_pack
@@ -222,7 +223,8 @@ def train(config: FastConfig) -> dict:
     ema_model = copy.deepcopy(dit).requires_grad_(False)
     optimizer = make_optimizer(dit, config.lr, (0.9, 0.99), config.weight_decay)
     generator = torch.Generator(device=device).manual_seed(config.seed)
-    autocast = device.type == "cuda"
+    # bf16 autocast where this device runs it faster (GPUs with bf16, AMX CPUs); fp32 on AVX2 CPUs (~80× slower)
+    autocast = resolve_precision("auto", device) == torch.bfloat16
     net = torch.compile(dit) if config.compile else dit
     out = Path(config.out)
     out.mkdir(parents=True, exist_ok=True)
