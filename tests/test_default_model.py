@@ -1,6 +1,7 @@
 """The shipped default model: it is in the repository, trained, and runs on a CPU."""
 
 import numpy as np
+import pytest
 
 from relight_core import media
 from relight_core.checkpoint import DEFAULT_MODEL_DIR, resolve_model
@@ -31,3 +32,25 @@ def test_default_model_relights_an_image():
     sunset, studio = results["sunset"], results["studio"]
     assert sunset.relit.mean() - studio.relit.mean() > 0.1
     assert np.abs(sunset.albedo - studio.albedo).mean() < np.abs(sunset.relit - studio.relit).mean() / 2
+
+
+def test_default_model_beats_the_input_copy_floor_on_held_out_scenes_it_renders(tmp_path):
+    """The first two scenes of the held-out test split (probes, meshes and textures training never
+    uses), rendered here with Mitsuba at the model's size and scored with `evaluate`'s protocol:
+    the shipped model's relit and albedo must beat the input returned unchanged (the floor), on
+    average over both directions of both scenes. Measured with the shipped model at 16 spp: relit
+    22.38 dB against a floor of 21.97, albedo 19.25 against 17.37."""
+    pytest.importorskip("mitsuba")
+    from relight_core.data.generate import RenderConfig, render_dataset
+    from relight_core.evaluation.harness import RunOptions, load_items, measure_item
+
+    relighter = Relighter.load("default", device="cpu")
+    render_dataset(RenderConfig(out=tmp_path, scenes=2, frames=1, size=relighter.spec.size, spp=16, workers=1,
+                                split="test"), progress=False)
+    items = load_items(tmp_path, "test")
+    assert len(items) == 4  # two scenes, both directions
+    records = [measure_item(relighter, item, RunOptions(), margin=False)[0] for item in items]
+    for clip in ("relit", "albedo"):
+        model = np.mean([r["model"][clip]["psnr"] for r in records])
+        floor = np.mean([r["floor"][clip]["psnr"] for r in records])
+        assert model > floor, f"{clip}: model {model:.2f} dB is not above the input-copy floor {floor:.2f} dB"
