@@ -42,7 +42,7 @@ def test_default_model_beats_the_input_copy_floor_on_held_out_scenes_it_renders(
     22.38 dB against a floor of 21.97, albedo 19.25 against 17.37."""
     pytest.importorskip("mitsuba")
     from relight_core.data.generate import RenderConfig, render_dataset
-    from relight_core.evaluation.harness import RunOptions, load_items, measure_item
+    from relight_core.evaluation.harness import RunOptions, load_items, mean_metrics, measure_item
 
     relighter = Relighter.load("default", device="cpu")
     render_dataset(RenderConfig(out=tmp_path, scenes=2, frames=1, size=relighter.spec.size, spp=16, workers=1,
@@ -51,6 +51,5 @@ def test_default_model_beats_the_input_copy_floor_on_held_out_scenes_it_renders(
     assert len(items) == 4  # two scenes, both directions
     records = [measure_item(relighter, item, RunOptions(), margin=False)[0] for item in items]
     for clip in ("relit", "albedo"):
-        model = np.mean([r["model"][clip]["psnr"] for r in records])
-        floor = np.mean([r["floor"][clip]["psnr"] for r in records])
+        model, floor = (mean_metrics(records, kind, clip, "psnr") for kind in ("model", "floor"))
         assert model > floor, f"{clip}: model {model:.2f} dB is not above the input-copy floor {floor:.2f} dB"
