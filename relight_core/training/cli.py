@@ -109,6 +109,7 @@ def _train(args) -> int:
     ranks = distributed.join(device.type) if distributed.launched() else distributed.Ranks(device=device)
     try:
         summary = train_dit(config, command=command, ranks=ranks)
+        distributed.barrier(ranks)   # the others wait while rank 0 writes the checkpoint and export
     finally:
         distributed.leave(ranks)
     if ranks.main:
