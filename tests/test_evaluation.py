@@ -212,6 +212,12 @@ def test_the_items_carry_the_datasets_stored_camera_frame_probes(dataset):
         for key in ("env_ldr", "env_log", "env_dir"):
             torch.testing.assert_close(data[index][key], encoded[key].permute(3, 0, 1, 2), rtol=0, atol=0)
         np.testing.assert_array_equal(item.input, (data[index]["input"].permute(1, 2, 3, 0).numpy() + 1) / 2)
+    # `skip` (calibrate --skip) leaves out exactly the items `evaluate --limit` reports on.
+    later = load_items(dataset, "test", count=1, spread=True, skip=2)
+    assert [i.name for i in later] == ["scene_000001 0→1"]
+    np.testing.assert_array_equal(later[0].target, items[2].target)
+    with pytest.raises(InputError, match="after its first 4 items"):
+        load_items(dataset, "test", skip=4)
 
 
 def test_a_camera_probe_is_used_as_given_and_equals_the_probe_it_was_made_from():

@@ -53,12 +53,14 @@ def _pixels(tensor: torch.Tensor) -> np.ndarray:
     return ((tensor.permute(1, 2, 3, 0).numpy() + 1) / 2).astype(np.float32)
 
 
-def load_items(root, split: str, count: int | None = None, spread: bool = False) -> list[EvalItem]:
-    """The first `count` relightable items of a split (all when None), or `count` evenly spread."""
+def load_items(root, split: str, count: int | None = None, spread: bool = False, skip: int = 0) -> list[EvalItem]:
+    """The first `count` relightable items of a split (all when None), or `count` evenly spread;
+    `skip` leaves out the split's first items (those `evaluate --limit skip` reports on)."""
     dataset = RelightDataset(root, split)
-    usable = [i for i, item in enumerate(dataset.items) if item.input_light is not None]
+    usable = [i for i, item in enumerate(dataset.items) if item.input_light is not None][skip:]
     if not usable:
-        raise InputError(f"The {split} split of {root} has no scene rendered under two probes; "
+        after = f" after its first {skip} items" if skip else ""
+        raise InputError(f"The {split} split of {root} has no scene rendered under two probes{after}; "
                          "evaluate on data written by render-data.")
     if count is not None and count < len(usable):
         usable = [usable[round(k * (len(usable) - 1) / max(count - 1, 1))] for k in range(count)] if spread \

@@ -8,8 +8,14 @@ here on **training** items — never on the items it is then reported on — by 
 PSNR (per-channel scale fit on the foreground mask, `evaluation.metrics`), among a grid that starts
 at 0 (the input returned unchanged). Sampling runs through `Relighter` as users run it.
 
+Train items flatter the model (it follows the probe better on scenes it was trained on), so the gain
+they pick can overshoot on new scenes. `--split test --skip 16` instead chooses it on held-out scenes
+(probes, meshes and textures training never sees) after the first 16 items, which `evaluate --limit 16`
+reports on and which the choice therefore never sees.
+
     python -m relight_core.training.calibrate --model DIR --data ~/.cache/unirelight-studio/data --items 48
     python -m relight_core.training.calibrate ... --write     # also store the gains in DIR/config.json
+    python -m relight_core.training.calibrate ... --split test --skip 16 --items 48   # held-out scenes
 """
 
 from __future__ import annotations
@@ -60,6 +66,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--split", default="train")
     parser.add_argument("--items", type=int, default=48,
                         help="items spread over the split (16 proved too few to choose a gain)")
+    parser.add_argument("--skip", type=int, default=0,
+                        help="leave out the split's first items: with --split test --skip 16 the gain is "
+                             "chosen on held-out scenes that `evaluate --limit 16` never reports")
     parser.add_argument("--write", action="store_true", help="store the gains in the model's config.json")
     args = parser.parse_args(argv)
 
@@ -74,11 +83,12 @@ def main(argv: list[str] | None = None) -> int:
             raise InputError(f"{args.model} is not a residual model; only its offsets can be calibrated.")
         relighter = Relighter.load(args.model)
         items = [resized(item, relighter.spec.size, relighter.frame_multiple)
-                 for item in load_items(args.data, args.split, args.items, spread=True)]
+                 for item in load_items(args.data, args.split, args.items, spread=True, skip=args.skip)]
     except InputError as exc:
         parser.exit(2, f"error: {exc}\n")
     table = measure_gains(relighter, items)
-    print(f"{len(items)} {args.split} items, relit / albedo PSNR (dB) by offset gain:")
+    after = f" (after its first {args.skip})" if args.skip else ""
+    print(f"{len(items)} {args.split} items{after}, relit / albedo PSNR (dB) by offset gain:")
     for gain, row in table.items():
         print(f"  gain {gain:5.3f}: relit {row['relit']:6.2f}  albedo {row['albedo']:6.2f}"
               + ("   (the input unchanged)" if gain == 0 else ""))
@@ -91,7 +101,8 @@ def main(argv: list[str] | None = None) -> int:
         data = json.loads(config.read_text())
         data["residual_gain"] = list(gains)
         data.setdefault("notes", {})["calibration"] = {
-            "split": args.split, "items": len(items), "metric": "protocol PSNR (scale fit, foreground)",
+            "split": args.split, "items": len(items), "skipped": args.skip,
+            "metric": "protocol PSNR (scale fit, foreground)",
             "table": {str(g): {k: round(v, 3) for k, v in row.items()} for g, row in table.items()}}
         config.write_text(json.dumps(data, indent=2) + "\n")
         print(f"wrote residual_gain {list(gains)} into {config}")
