@@ -223,7 +223,7 @@ def train(config: FastConfig) -> dict:
     ema_model = copy.deepcopy(dit).requires_grad_(False)
     optimizer = make_optimizer(dit, config.lr, (0.9, 0.99), config.weight_decay)
     generator = torch.Generator(device=device).manual_seed(config.seed)
-    # bf16 autocast where this device runs it faster (GPUs with bf16, AMX CPUs); fp32 on AVX2 CPUs (~80× slower)
+    # bf16 autocast where this device runs it faster (GPUs with bf16, AMX or AVX512-BF16 CPUs); fp32 on AVX2 (~80× slower)
     autocast = resolve_precision("auto", device) == torch.bfloat16
     net = torch.compile(dit) if config.compile else dit
     out = Path(config.out)
