@@ -71,6 +71,8 @@ def main(argv: list[str] | None = None) -> int:
                              "chosen on held-out scenes that `evaluate --limit 16` never reports")
     parser.add_argument("--write", action="store_true", help="store the gains in the model's config.json")
     args = parser.parse_args(argv)
+    if args.skip < 0:
+        parser.error(f"--skip takes a count of items, 0 or more, not {args.skip}.")
 
     from relight_core.checkpoint import CONFIG_FILE, resolve_model
     from relight_core.errors import InputError
