@@ -220,6 +220,18 @@ def test_the_items_carry_the_datasets_stored_camera_frame_probes(dataset):
         load_items(dataset, "test", skip=4)
 
 
+def test_calibrate_refuses_a_bad_skip_in_one_sentence(dataset, capsys):
+    from relight_core.training import calibrate
+
+    base = ["--model", "default", "--data", str(dataset), "--split", "test"]
+    for skip, words in (("-1", "--skip takes a count of items"),
+                        ("4", "no scene rendered under two probes after its first 4")):
+        with pytest.raises(SystemExit) as stop:
+            calibrate.main([*base, "--skip", skip])
+        err = capsys.readouterr().err
+        assert stop.value.code == 2 and words in err and "Traceback" not in err
+
+
 def test_a_camera_probe_is_used_as_given_and_equals_the_probe_it_was_made_from():
     relighter = _tiny()
     frames = np.random.default_rng(0).random((1, SIZE, SIZE, 3), dtype=np.float32)
