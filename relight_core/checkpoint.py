@@ -50,6 +50,8 @@ class ModelSpec:
     lighting_size: int | None = None     # probes seen through a size² panorama (lighting.lowpass_panorama)
     residual: bool = False               # relit/albedo diffused as offsets from the input (ConditionedDenoiser)
     residual_gain: tuple[float, float] = (1.0, 1.0)  # (relit, albedo) offset scale, fitted by training.calibrate
+    offset_filter: tuple[int, int] = (0, 0)  # (relit, albedo) guided-filter radius (px at `size`) of a
+                                             # residual model's offset, 0 = off (upsample.smooth_offset)
     notes: dict = field(default_factory=dict)
 
     def to_json(self) -> dict:
@@ -71,6 +73,8 @@ class ModelSpec:
         kwargs["dit"] = DiTConfig(**{k: _tuples(v) for k, v in data["dit"].items() if k in dit_fields})
         if "residual_gain" in kwargs:
             kwargs["residual_gain"] = tuple(float(g) for g in kwargs["residual_gain"])
+        if "offset_filter" in kwargs:
+            kwargs["offset_filter"] = tuple(int(r) for r in kwargs["offset_filter"])
         return cls(**kwargs)
 
 

@@ -70,6 +70,30 @@ def guided_ratio_upsample(full_input: np.ndarray, small_input: np.ndarray, small
     return out[0] if single else out
 
 
+def smooth_offset(guide: np.ndarray, output: np.ndarray, radius: int, eps: float = GUIDE_EPS) -> np.ndarray:
+    """What a residual model changed, edge-aware smoothed: clip(guide + GF(output − guide), 0, 1).
+
+    `guide` [T,H,W,3] is the input the model saw and `output` [T,H,W,3] (same size) its relit or
+    albedo result, both in [0, 1]. A briefly trained model's offset carries blotches of its own; the
+    guided filter (guide = the input) averages them away inside regions and keeps the input's edges
+    (measured on held-out scenes: docs/QUALITY.md). `radius` 0 returns `output` unchanged. The filter
+    is linear in the offset, so an offset that is constant in each window comes through unchanged.
+    """
+    if radius <= 0:
+        return output
+    guide = np.asarray(guide, dtype=np.float32)
+    output = np.asarray(output, dtype=np.float32)
+    if guide.shape != output.shape or guide.ndim != 4 or guide.shape[-1] != 3:
+        raise InputError(f"Smoothing an offset needs two clips [T,H,W,3] of one size; got "
+                         f"{list(guide.shape)} and {list(output.shape)}.")
+    out = np.empty_like(output)
+    for t in range(len(guide)):
+        g = np.ascontiguousarray(guide[t])
+        offset = cv2.ximgproc.guidedFilter(g, np.ascontiguousarray(output[t] - g), int(radius), float(eps))
+        out[t] = np.clip(g + offset, 0.0, 1.0)
+    return out
+
+
 def plain_upsample(small_output: np.ndarray, height: int, width: int) -> np.ndarray:
     """The baseline: the model's output [T,h,w,3] resized to [T,height,width,3] (bilinear, antialiased)."""
     import torch

@@ -139,6 +139,34 @@ def test_fast_training_exports_a_model_the_relighter_runs(tmp_path):
     assert np.isfinite(result.albedo).all()
 
 
+def test_a_residual_models_offset_filter_smooths_what_it_changed_and_scales_with_the_size():
+    from relight_core.upsample import smooth_offset
+
+    torch.manual_seed(0)
+    config = DiTConfig(width=32, depth=1, num_heads=2, patch_spatial=1, patch_temporal=1, out_channels=192,
+                       cross_attention=False, adaln_lora_dim=8)
+    dit = JointDiT(config)
+    torch.nn.init.normal_(dit.final_layer.linear.weight, std=0.05)    # a model whose offsets are blotchy
+    tok = build_tokenizer({"type": "pixel", "patch": 8})
+    from relight_core.checkpoint import ModelSpec
+    spec = ModelSpec(name="r", dit=config, tokenizer={"type": "pixel", "patch": 8}, chunk_frames=1,
+                     overlap_frames=0, size=32, steps=1, lighting_size=8, residual=True)
+    frames = np.random.default_rng(1).random((1, 32, 32, 3)).astype(np.float32)
+    request = RelightRequest(frames=frames, probe=np.ones((16, 32, 3), np.float32))
+    raw = Relighter(spec, dit, tok).relight(request)
+    filtered = Relighter(replace(spec, offset_filter=(3, 2)), dit, tok).relight(request)
+    np.testing.assert_allclose(filtered.relit, smooth_offset(frames, raw.relit, 3), atol=1e-5)
+    np.testing.assert_allclose(filtered.albedo, smooth_offset(frames, raw.albedo, 2), atol=1e-5)
+    assert np.abs(filtered.relit - raw.relit).mean() > 1e-3             # it did something
+    # Frames at twice the model's size get twice the radius.
+    big = np.random.default_rng(2).random((1, 64, 64, 3)).astype(np.float32)
+    big_request = replace(request, frames=big)
+    raw_big = Relighter(spec, dit, tok).relight(big_request)
+    filtered_big = Relighter(replace(spec, offset_filter=(3, 0)), dit, tok).relight(big_request)
+    np.testing.assert_allclose(filtered_big.relit, smooth_offset(big, raw_big.relit, 6), atol=1e-5)
+    np.testing.assert_allclose(filtered_big.albedo, raw_big.albedo, atol=1e-6)
+
+
 def test_a_zero_head_residual_model_returns_its_input_and_training_resumes(tmp_path):
     root = _write_dataset(tmp_path / "data")
     write_pack(root, "train", tmp_path / "p.npz", lighting_size=8)
@@ -173,8 +201,11 @@ def test_a_zero_head_residual_model_returns_its_input_and_training_resumes(tmp_p
     zero = Relighter(replace(spec, residual_gain=(0.0, 0.0)), dit, tok)
     result = zero.relight(RelightRequest(frames=frames, probe=np.ones((16, 32, 3), np.float32)))
     np.testing.assert_allclose(result.relit, frames, atol=1e-5)
-    assert calibrate.best_gains({0.5: {"relit": 20.0, "albedo": 18.0}, 1.0: {"relit": 19.0, "albedo": 19.0}}) \
-        == (0.5, 1.0)
+    assert set(written["notes"]["calibration"]["table"]["0.5"]) == {str(r) for r in calibrate.RADII}
+    assert tuple(written["offset_filter"]) == load_model(model)[0].offset_filter
+    assert calibrate.best_gains({(0.5, 0): {"relit": 20.0, "albedo": 18.0}, (1.0, 0): {"relit": 19.0, "albedo": 19.0},
+                                 (0.5, 4): {"relit": 20.5, "albedo": 17.0}, (1.0, 4): {"relit": 20.5, "albedo": 19.0}}) \
+        == ((0.5, 4), (1.0, 0))   # best each; a tie goes to the smaller gain, then the smaller radius
     # The first run left a checkpoint (weights, EMA, optimizer, generator, step, time used): started
     # again on the same folder it resumes there and, its time spent, stops without a new step.
     again = train(FastConfig(out=tmp_path / "first", minutes=0.02, **base))

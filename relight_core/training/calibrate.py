@@ -1,5 +1,5 @@
-"""Fit a residual model's offset gains (`ModelSpec.residual_gain`) on training items and write them
-into its config.json.
+"""Fit a residual model's offset gains (`ModelSpec.residual_gain`) and offset filter radii
+(`ModelSpec.offset_filter`) on items and write them into its config.json.
 
 A residual model (`ModelSpec.residual`) predicts relit − input and albedo − input. Trained briefly,
 its offsets point the right way but overshoot: the shipped CPU-trained model scored below the
@@ -12,6 +12,11 @@ Train items flatter the model (it follows the probe better on scenes it was trai
 they pick can overshoot on new scenes. `--split test --skip 16` instead chooses it on held-out scenes
 (probes, meshes and textures training never sees) after the first 16 items, which `evaluate --limit 16`
 reports on and which the choice therefore never sees.
+
+Each gain's outputs are also scored after the edge-aware smoothing of their offset
+(`upsample.smooth_offset`, guided by the input) at each radius of `RADII` (0 = none): a post-process
+on the same run, so the radii cost no extra sampling. Relit and albedo each get the (gain, radius)
+pair with the highest mean PSNR.
 
     python -m relight_core.training.calibrate --model DIR --data ~/.cache/unirelight-studio/data --items 48
     python -m relight_core.training.calibrate ... --write     # also store the gains in DIR/config.json
@@ -28,35 +33,45 @@ from pathlib import Path
 import numpy as np
 
 GRID = (0.0, 0.25, 0.375, 0.5, 0.625, 0.75, 1.0)
+RADII = (0, 2, 4, 8)    # offset filter radii (px at the model's size); 0 = the model's output as it is
 
 
-def measure_gains(relighter, items, grid=GRID, seed: int = 0) -> dict[float, dict[str, float]]:
-    """{gain: {"relit": mean PSNR, "albedo": mean PSNR}} with both clips' gains set to `gain`.
+def measure_gains(relighter, items, grid=GRID, seed: int = 0, radii=RADII
+                  ) -> dict[tuple[float, int], dict[str, float]]:
+    """{(gain, radius): {"relit": mean PSNR, "albedo": mean PSNR}}, both clips' gains set to `gain`
+    and both offsets smoothed at `radius` (the model's own filter switched off while measuring).
 
     The relit and albedo outputs of one sampling run do not depend on each other's gain (the gain
     scales each clip's x0), so one run per gain measures both curves."""
     from relight_core.evaluation.harness import RunOptions, relight
     from relight_core.evaluation.metrics import albedo_metrics, protocol_metrics
+    from relight_core.upsample import smooth_offset
 
     spec = relighter.spec
     table = {}
     try:
         for gain in grid:
-            relighter.spec = replace(spec, residual_gain=(gain, gain))
-            relit_psnr, albedo_psnr = [], []
+            relighter.spec = replace(spec, residual_gain=(gain, gain), offset_filter=(0, 0))
+            scores = {radius: ([], []) for radius in radii}
             for item in items:
                 relit, albedo, _ = relight(relighter, item.input, item.probe, RunOptions(seed=seed))
-                relit_psnr.append(protocol_metrics(relit, item.target, item.mask)["psnr"])
-                albedo_psnr.append(albedo_metrics(albedo, item.albedo, item.mask)["psnr"])
-            table[gain] = {"relit": float(np.mean(relit_psnr)), "albedo": float(np.mean(albedo_psnr))}
+                for radius, (relit_psnr, albedo_psnr) in scores.items():
+                    smooth = smooth_offset(item.input, relit, radius), smooth_offset(item.input, albedo, radius)
+                    relit_psnr.append(protocol_metrics(smooth[0], item.target, item.mask)["psnr"])
+                    albedo_psnr.append(albedo_metrics(smooth[1], item.albedo, item.mask)["psnr"])
+            for radius, (relit_psnr, albedo_psnr) in scores.items():
+                table[gain, radius] = {"relit": float(np.mean(relit_psnr)), "albedo": float(np.mean(albedo_psnr))}
     finally:
         relighter.spec = spec
     return table
 
 
-def best_gains(table: dict[float, dict[str, float]]) -> tuple[float, float]:
-    """(relit gain, albedo gain) with the highest mean PSNR each."""
-    return (max(table, key=lambda g: table[g]["relit"]), max(table, key=lambda g: table[g]["albedo"]))
+def best_gains(table: dict[tuple[float, int], dict[str, float]]) -> tuple[tuple[float, int], tuple[float, int]]:
+    """((relit gain, radius), (albedo gain, radius)) with the highest mean PSNR each; on a tie the
+    smaller gain and radius (the one that changes the model's output least)."""
+    def best(clip):
+        return max(sorted(table), key=lambda key: (round(table[key][clip], 6), -key[0], -key[1]))
+    return best("relit"), best("albedo")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -90,24 +105,30 @@ def main(argv: list[str] | None = None) -> int:
         parser.exit(2, f"error: {exc}\n")
     table = measure_gains(relighter, items)
     after = f" (after its first {args.skip})" if args.skip else ""
-    print(f"{len(items)} {args.split} items{after}, relit / albedo PSNR (dB) by offset gain:")
-    for gain, row in table.items():
-        print(f"  gain {gain:5.3f}: relit {row['relit']:6.2f}  albedo {row['albedo']:6.2f}"
-              + ("   (the input unchanged)" if gain == 0 else ""))
-    gains = best_gains(table)
-    print(f"best: relit gain {gains[0]}, albedo gain {gains[1]}")
+    gains, radii = sorted({g for g, _ in table}), sorted({r for _, r in table})
+    for clip in ("relit", "albedo"):
+        print(f"{len(items)} {args.split} items{after}, {clip} PSNR (dB) by offset gain (rows) "
+              f"and offset filter radius (columns):")
+        print("  gain   " + "".join(f"  r={r:<5d}" for r in radii))
+        for gain in gains:
+            print(f"  {gain:5.3f}  " + "".join(f"  {table[gain, r][clip]:7.2f}" for r in radii)
+                  + ("   (gain 0, radius 0: the input unchanged)" if gain == 0 else ""))
+    (relit_gain, relit_radius), (albedo_gain, albedo_radius) = best_gains(table)
+    print(f"best: relit gain {relit_gain} radius {relit_radius}, albedo gain {albedo_gain} radius {albedo_radius}")
     if args.write:
         config = Path(weights) / CONFIG_FILE if weights is not None else None
         if config is None or not config.is_file():
             parser.exit(2, f"error: {args.model} has no config.json to write the gains into.\n")
         data = json.loads(config.read_text())
-        data["residual_gain"] = list(gains)
+        data["residual_gain"] = [relit_gain, albedo_gain]
+        data["offset_filter"] = [relit_radius, albedo_radius]
         data.setdefault("notes", {})["calibration"] = {
             "split": args.split, "items": len(items), "skipped": args.skip,
             "metric": "protocol PSNR (scale fit, foreground)",
-            "table": {str(g): {k: round(v, 3) for k, v in row.items()} for g, row in table.items()}}
+            "table": {str(g): {str(r): {k: round(v, 3) for k, v in table[g, r].items()} for r in radii}
+                      for g in gains}}
         config.write_text(json.dumps(data, indent=2) + "\n")
-        print(f"wrote residual_gain {list(gains)} into {config}")
+        print(f"wrote residual_gain {data['residual_gain']} and offset_filter {data['offset_filter']} into {config}")
     return 0
 
 
