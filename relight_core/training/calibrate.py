@@ -33,7 +33,7 @@ from pathlib import Path
 import numpy as np
 
 GRID = (0.0, 0.25, 0.375, 0.5, 0.625, 0.75, 1.0)
-RADII = (0, 2, 4, 8)    # offset filter radii (px at the model's size); 0 = the model's output as it is
+RADII = (0, 2, 4, 8, 16)  # offset filter radii (px at the model's size); 0 = the model's output as it is
 
 
 def measure_gains(relighter, items, grid=GRID, seed: int = 0, radii=RADII
