@@ -16,6 +16,7 @@ from relight_core.data.dataset import RelightDataset, read_stream, write_frame, 
 from relight_core.dit import JointDiT, channel_layout
 from relight_core.errors import InputError
 from relight_core.evaluation import protocol_metrics, psnr, scale_fit, ssim
+from relight_core.evaluation.metrics import protocol_psnr
 from relight_core.evaluation.harness import RunOptions, load_items, measure_item, probe_margin, relight
 from relight_core.evaluation.metrics import albedo_metrics, delta_e2000
 from relight_core.pipeline import Relighter, RelightRequest
@@ -63,6 +64,7 @@ def test_scale_fit_is_the_per_channel_least_squares_factor_on_the_mask():
     expected_mse = (0.04 ** 2 + 0.02 ** 2) / 6
     assert psnr(fitted, target, mask) == pytest.approx(-10 * math.log10(expected_mse))
     assert protocol_metrics(pred, target, mask)["psnr"] == pytest.approx(-10 * math.log10(expected_mse))
+    assert protocol_psnr(pred, target, mask) == protocol_metrics(pred, target, mask)["psnr"]
 
 
 def test_scale_fit_removes_a_colour_cast_and_clips():

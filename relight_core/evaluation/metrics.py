@@ -122,6 +122,11 @@ def protocol_metrics(pred, target, mask=None) -> dict[str, float]:
     return {"psnr": psnr(fitted, target, mask), "ssim": ssim(fitted, target, mask)}
 
 
+def protocol_psnr(pred, target, mask=None) -> float:
+    """The protocol's PSNR alone (the "psnr" of `protocol_metrics`, without the SSIM's cost)."""
+    return psnr(scale_fit(pred, target, mask)[0], target, mask)
+
+
 def albedo_metrics(pred, target, mask=None) -> dict[str, float]:
     """`protocol_metrics` plus "delta_e2000" of the same scale-fitted prediction."""
     fitted, _ = scale_fit(pred, target, mask)

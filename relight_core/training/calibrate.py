@@ -44,7 +44,7 @@ def measure_gains(relighter, items, grid=GRID, seed: int = 0, radii=RADII
     The relit and albedo outputs of one sampling run do not depend on each other's gain (the gain
     scales each clip's x0), so one run per gain measures both curves."""
     from relight_core.evaluation.harness import RunOptions, relight
-    from relight_core.evaluation.metrics import albedo_metrics, protocol_metrics
+    from relight_core.evaluation.metrics import protocol_psnr
     from relight_core.upsample import smooth_offset
 
     spec = relighter.spec
@@ -57,8 +57,8 @@ def measure_gains(relighter, items, grid=GRID, seed: int = 0, radii=RADII
                 relit, albedo, _ = relight(relighter, item.input, item.probe, RunOptions(seed=seed))
                 for radius, (relit_psnr, albedo_psnr) in scores.items():
                     smooth = smooth_offset(item.input, relit, radius), smooth_offset(item.input, albedo, radius)
-                    relit_psnr.append(protocol_metrics(smooth[0], item.target, item.mask)["psnr"])
-                    albedo_psnr.append(albedo_metrics(smooth[1], item.albedo, item.mask)["psnr"])
+                    relit_psnr.append(protocol_psnr(smooth[0], item.target, item.mask))
+                    albedo_psnr.append(protocol_psnr(smooth[1], item.albedo, item.mask))
             for radius, (relit_psnr, albedo_psnr) in scores.items():
                 table[gain, radius] = {"relit": float(np.mean(relit_psnr)), "albedo": float(np.mean(albedo_psnr))}
     finally:
