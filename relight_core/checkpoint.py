@@ -74,7 +74,12 @@ class ModelSpec:
         if "residual_gain" in kwargs:
             kwargs["residual_gain"] = tuple(float(g) for g in kwargs["residual_gain"])
         if "offset_filter" in kwargs:
-            kwargs["offset_filter"] = tuple(int(r) for r in kwargs["offset_filter"])
+            radii = kwargs["offset_filter"]
+            if not isinstance(radii, (list, tuple)) or len(radii) != 2 or not all(
+                    isinstance(r, int) and not isinstance(r, bool) and 0 <= r <= 1024 for r in radii):
+                raise InputError(f"The model's config.json has offset_filter {radii!r}; it takes two whole numbers "
+                                 "of pixels from 0 to 1024 (relit, albedo), or leave it out.")
+            kwargs["offset_filter"] = tuple(radii)
         return cls(**kwargs)
 
 

@@ -24,6 +24,16 @@ def test_spec_json_round_trip():
         assert ModelSpec.from_json(json.loads(json.dumps(spec.to_json()))) == spec
 
 
+def test_offset_filter_round_trips_and_a_bad_one_is_one_sentence():
+    data = MODEL_PRESETS["tiny"].to_json()
+    data["offset_filter"] = [16, 8]
+    assert ModelSpec.from_json(json.loads(json.dumps(data))).offset_filter == (16, 8)
+    for bad in ([16], [-1, 2], [2.5, 2], "8", [True, 0]):
+        data["offset_filter"] = bad
+        with pytest.raises(InputError, match="offset_filter .* two whole numbers"):
+            ModelSpec.from_json(data)
+
+
 def test_save_then_load_gives_identical_weights(saved_tiny):
     directory, spec, dit, tokenizer = saved_tiny
     spec2, dit2, tokenizer2 = load_model(directory)

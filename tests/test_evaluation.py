@@ -16,9 +16,8 @@ from relight_core.data.dataset import RelightDataset, read_stream, write_frame, 
 from relight_core.dit import JointDiT, channel_layout
 from relight_core.errors import InputError
 from relight_core.evaluation import protocol_metrics, psnr, scale_fit, ssim
-from relight_core.evaluation.metrics import protocol_psnr
 from relight_core.evaluation.harness import RunOptions, load_items, measure_item, probe_margin, relight
-from relight_core.evaluation.metrics import albedo_metrics, delta_e2000
+from relight_core.evaluation.metrics import albedo_metrics, delta_e2000, protocol_psnr
 from relight_core.pipeline import Relighter, RelightRequest
 from relight_core.tokenizer import build_tokenizer
 from tests.factory import awake
