@@ -170,8 +170,7 @@ class Relighter(CostModel):
             except Stopped:
                 return
             relit_chunk, albedo_chunk = self._decode(x0, t, length)
-            if self.spec.residual and request.mode != "render":  # render mode's offsets are not from an input
-                relit_chunk, albedo_chunk = self._smoothed(chunk_frames, relit_chunk, albedo_chunk)
+            relit_chunk, albedo_chunk = self._smoothed(request.mode, chunk_frames, relit_chunk, albedo_chunk)
             weights = crossfade_weights(overlap[0].shape[0]) if overlap is not None else None
             stitch(relit_out, relit_chunk, start, weights)
             stitch(albedo_out, albedo_chunk, start, weights)
@@ -343,10 +342,12 @@ class Relighter(CostModel):
         frames = ((video.clamp(-1, 1) + 1) / 2).permute(0, 2, 3, 4, 1).cpu().numpy()
         return frames[0, :length], frames[1, :length]
 
-    def _smoothed(self, frames: np.ndarray, relit: np.ndarray, albedo: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The relit and albedo frames with the model's offset filter (`ModelSpec.offset_filter`),
-        its radii scaled from the model's size to these frames' size."""
-        if not any(self.spec.offset_filter):
+    def _smoothed(self, mode: str, frames: np.ndarray, relit: np.ndarray, albedo: np.ndarray
+                  ) -> tuple[np.ndarray, np.ndarray]:
+        """The relit and albedo frames with a residual model's offset filter (`ModelSpec.offset_filter`),
+        its radii scaled from the model's size to these frames' size. Not in render mode: there the
+        offsets do not start from an input."""
+        if not self.spec.residual or mode == "render" or not any(self.spec.offset_filter):
             return relit, albedo
         from relight_core.upsample import smooth_offset  # opencv, loaded when a model asks for it
         scale = max(frames.shape[1:3]) / self.spec.size

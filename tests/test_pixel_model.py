@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from relight_core import lighting
-from relight_core.checkpoint import DIT_FILE, TOKENIZER_FILE, load_model
+from relight_core.checkpoint import DIT_FILE, TOKENIZER_FILE, ModelSpec, load_model
 from relight_core.data.dataset import write_frame, write_manifest, write_meta
 from relight_core.dit import CHANNELS, DiTConfig, JointDiT, assemble_inputs, channel_layout, pack_lighting
 from relight_core.errors import InputError
@@ -18,6 +18,7 @@ from relight_core.tokenizer import PixelTokenizer, build_tokenizer
 from relight_core.training.recipe import Recipe
 from relight_core.training.fast import FastConfig, make_batch, merge_shards, train
 from relight_core.training.pack import load_pack, write_pack
+from relight_core.upsample import smooth_offset
 
 
 def test_pixel_tokenizer_is_lossless_and_spatially_local():
@@ -140,15 +141,12 @@ def test_fast_training_exports_a_model_the_relighter_runs(tmp_path):
 
 
 def test_a_residual_models_offset_filter_smooths_what_it_changed_and_scales_with_the_size():
-    from relight_core.upsample import smooth_offset
-
     torch.manual_seed(0)
     config = DiTConfig(width=32, depth=1, num_heads=2, patch_spatial=1, patch_temporal=1, out_channels=192,
                        cross_attention=False, adaln_lora_dim=8)
     dit = JointDiT(config)
     torch.nn.init.normal_(dit.final_layer.linear.weight, std=0.05)    # a model whose offsets are blotchy
     tok = build_tokenizer({"type": "pixel", "patch": 8})
-    from relight_core.checkpoint import ModelSpec
     spec = ModelSpec(name="r", dit=config, tokenizer={"type": "pixel", "patch": 8}, chunk_frames=1,
                      overlap_frames=0, size=32, steps=1, lighting_size=8, residual=True)
     frames = np.random.default_rng(1).random((1, 32, 32, 3)).astype(np.float32)
@@ -165,6 +163,10 @@ def test_a_residual_models_offset_filter_smooths_what_it_changed_and_scales_with
     filtered_big = Relighter(replace(spec, offset_filter=(3, 0)), dit, tok).relight(big_request)
     np.testing.assert_allclose(filtered_big.relit, smooth_offset(big, raw_big.relit, 6), atol=1e-5)
     np.testing.assert_allclose(filtered_big.albedo, raw_big.albedo, atol=1e-6)
+    # Render mode (albedo → relit) has no input to take an offset from: the filter stays out of it.
+    render = replace(request, mode="render", albedo=frames)
+    np.testing.assert_array_equal(Relighter(replace(spec, offset_filter=(3, 2)), dit, tok).relight(render).relit,
+                                  Relighter(spec, dit, tok).relight(render).relit)
 
 
 def test_a_zero_head_residual_model_returns_its_input_and_training_resumes(tmp_path):

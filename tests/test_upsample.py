@@ -9,7 +9,7 @@ from PIL import Image
 from relight_core import media
 from relight_core.cli import main
 from relight_core.errors import InputError
-from relight_core.upsample import guided_ratio_upsample, plain_upsample
+from relight_core.upsample import guided_ratio_upsample, plain_upsample, smooth_offset
 from tests.factory import make_sun_probe
 
 
@@ -88,8 +88,6 @@ def test_cli_writes_the_inputs_resolution_unless_raw(tmp_path):
 
 
 def test_offset_smoothing_keeps_a_constant_offset_and_averages_blotches_away():
-    from relight_core.upsample import smooth_offset
-
     guide = _photo(t=2, h=48, w=64) * 0.8
     shifted = guide + 0.1                                        # a constant offset: kept exactly
     np.testing.assert_allclose(smooth_offset(guide, shifted, 4), np.clip(shifted, 0, 1), atol=1e-5)
