@@ -16,7 +16,7 @@ from relight_core.data.dataset import RelightDataset, read_stream, write_frame, 
 from relight_core.dit import JointDiT, channel_layout
 from relight_core.errors import InputError
 from relight_core.evaluation import protocol_metrics, psnr, scale_fit, ssim
-from relight_core.evaluation.harness import RunOptions, load_items, measure_item, probe_margin, relight
+from relight_core.evaluation.harness import RunOptions, load_items, measure_item, probe_margin, relight, resized
 from relight_core.evaluation.metrics import albedo_metrics, delta_e2000, protocol_psnr
 from relight_core.pipeline import Relighter, RelightRequest
 from relight_core.tokenizer import build_tokenizer
@@ -313,7 +313,7 @@ def test_evaluate_end_to_end_on_the_tiny_preset(dataset, tmp_path, capsys):
     results = json.loads((out / "metrics.json").read_text())
     test = results["test"]
     assert test["items"] == 2 and results["train"]["items"] == 1
-    assert results["model"]["steps"] == 1 and results["data"]["model_size"] == [64, 64]   # tiny works at 64 px
+    assert results["model"]["steps"] == 1 and results["data"]["measured_size"] == [64, 64]   # tiny works at 64 px
     # The floor is the input scored as the result, computed here independently.
     items = load_items(dataset, "test", count=2)
     floors, albedo_floors = [], []
@@ -356,6 +356,44 @@ def test_evaluate_end_to_end_on_the_tiny_preset(dataset, tmp_path, capsys):
     width, height = Image.open(out / "grids" / "test_000.png").size
     assert width == 5 * 128 and height > 128            # five columns (64 px frames shown at 128)
     assert "relit" in capsys.readouterr().out
+
+
+def test_measuring_at_another_size_runs_the_model_at_its_own_and_brings_results_back_guided(dataset):
+    from relight_core.evaluation.harness import ceiling, model_size, reconstruct
+    from relight_core.upsample import guided_ratio_upsample
+
+    relighter = _tiny()                                            # works at 64 px
+    big = resized(load_items(dataset, "test", count=1)[0], 128, 8)  # a "photo" twice the model's size
+    small = model_size(relighter, big.input)
+    assert small.shape == (1, 64, 64, 3)
+    options = RunOptions(steps=1)
+    relit, albedo, _ = relight(relighter, big.input, big.probe, options)
+    assert relit.shape == albedo.shape == big.input.shape
+    direct, direct_albedo, _ = relight(relighter, small, big.probe, options)     # at the model's size: as it is
+    assert direct.shape == small.shape
+    np.testing.assert_allclose(relit, guided_ratio_upsample(big.input, small, direct), atol=1e-6)
+    np.testing.assert_allclose(albedo, guided_ratio_upsample(big.input, small, direct_albedo), atol=1e-6)
+    # The ceiling is what a perfect model could give through the same path, not a reconstruction at 128 px.
+    best = ceiling(relighter, big.target, big.input)
+    np.testing.assert_allclose(best, guided_ratio_upsample(big.input, small, reconstruct(
+        relighter, model_size(relighter, big.target))), atol=1e-6)
+    at_model_size = resized(big, 64, 8)
+    np.testing.assert_array_equal(ceiling(relighter, at_model_size.target, at_model_size.input),
+                                  reconstruct(relighter, at_model_size.target))
+
+
+def test_evaluate_at_a_larger_size_measures_there(dataset, tmp_path):
+    out = tmp_path / "eval96"
+    assert main(["evaluate", "--data", str(dataset), "--model", "tiny", "--steps", "1", "--limit", "1",
+                 "--train-items", "0", "--sigma-items", "1", "--sigma-steps", "2", "--size", "96", "--no-grids",
+                 "--out", str(out)]) == 0
+    results = json.loads((out / "metrics.json").read_text())
+    assert results["model"]["size"] == 64 and results["data"]["measured_size"] == [96, 96]
+    item = resized(load_items(dataset, "test", count=1)[0], 96, 8)
+    assert results["test"]["floor"]["relit"]["psnr"] == pytest.approx(
+        protocol_metrics(item.input, item.target, item.mask)["psnr"], abs=1e-6)   # the floor at 96 px
+    assert math.isfinite(results["test"]["margin"]) and results["sigma"]["test"]["items"] == 1
+    assert "model size 64 px, measured at 96×96" in (out / "metrics.md").read_text()
 
 
 def test_evaluate_bad_input_is_one_sentence_and_exit_2(dataset, tmp_path, capsys):

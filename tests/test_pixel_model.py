@@ -214,3 +214,42 @@ def test_a_zero_head_residual_model_returns_its_input_and_training_resumes(tmp_p
     log = [json.loads(line) for line in (tmp_path / "first" / "log.jsonl").read_text().splitlines()]
     assert [r["step"] for r in log if r.get("event") == "resume"] == [first["steps"]]
     assert again["steps"] == first["steps"]
+
+
+def test_training_at_a_smaller_size_shrinks_the_packs_as_the_pipeline_shrinks_frames(tmp_path):
+    from relight_core import media
+    from relight_core.evaluation.harness import load_items, resized
+    from relight_core.evaluation.metrics import protocol_psnr
+    from relight_core.training import calibrate
+    from relight_core.training.fast import shrink_pack
+
+    root = _write_dataset(tmp_path / "data", size=32)
+    write_pack(root, "train", tmp_path / "p.npz", lighting_size=8)
+    pack = load_pack(tmp_path / "p.npz")
+    small = shrink_pack(pack, 16)
+    assert small["rgb"].shape == (3, 2, 3, 16, 16) and small["rgb"].dtype == torch.uint8
+    assert small["albedo"].shape == (3, 3, 16, 16) and small["mask"].shape == (3, 16, 16)
+    assert small["mask"].dtype == torch.bool and torch.equal(small["env"], pack["env"])   # probes stay
+    # The images shrink as Relighter's callers shrink frames (antialiased bilinear), to within rounding.
+    image = pack["rgb"][1, 0].permute(1, 2, 0)[None].float().numpy() / 255
+    expected = media.resize_frames(image, 16, multiple=8)[0] * 255
+    assert np.abs(small["rgb"][1, 0].permute(1, 2, 0).float().numpy() - expected).max() <= 0.51
+    assert shrink_pack(pack, 32) is pack
+    for bad in (12, 64):
+        with pytest.raises(ValueError, match="--train-size"):
+            shrink_pack(pack, bad)
+    # A run with --train-size exports a model that works at that size ...
+    train(FastConfig(pack=tmp_path / "p.npz", out=tmp_path / "run", device="cpu", batch=2, width=32, depth=1,
+                     num_heads=2, log_every=1, eval_items=2, eval_steps=1, warmup=1, minutes=0.01, train_size=16,
+                     recipe=Recipe(residual=True)))
+    spec, dit, tok = load_model(tmp_path / "run" / "model")
+    assert spec.size == 16 and spec.residual
+    # ... and calibrating it at its data's size scores the results brought back there: at gain 0 (the
+    # input unchanged at 16 px, ratio 1) the score is the input-copy floor at 32 px exactly.
+    relighter = Relighter(spec, dit, tok)
+    items = [resized(item, 32, 8) for item in load_items(root, "train", 2)]
+    table = calibrate.measure_gains(relighter, items, grid=(0.0, 1.0), radii=(0, 2))
+    floor = np.mean([protocol_psnr(item.input, item.target, item.mask) for item in items])
+    assert table[0.0, 0]["relit"] == pytest.approx(floor, abs=1e-4)
+    assert table[0.0, 2]["relit"] == pytest.approx(floor, abs=1e-4)
+    assert table[1.0, 0]["relit"] != pytest.approx(floor, abs=1e-4)     # the model's change is scored too

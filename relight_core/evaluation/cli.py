@@ -42,6 +42,9 @@ def add_evaluation_commands(subparsers) -> None:
                    help="steps of the Karras σ schedule it sweeps (default: --steps, at least 20)")
     p.add_argument("--steps-list", type=_steps_list, default=(), metavar="N,N,...",
                    help="also sample with these step counts, e.g. 5,10,20,35 (steps-vs-quality table)")
+    p.add_argument("--size", type=positive_int, default=None,
+                   help="measure at this long side (default: the model's size); the model runs at its "
+                        "size and results come back by guided ratio upsampling, as in the CLI and studio")
     p.add_argument("--eval-size", type=positive_int, default=None,
                    help="also measure full-resolution output at this long side: plain resize vs guided ratio")
     p.add_argument("--no-margin", action="store_true", help="skip the probe-following margin (one run per item)")
@@ -62,7 +65,7 @@ def _evaluate(args) -> int:
         data=args.data, out=out, split=args.split, model=args.model, limit=args.limit,
         train_items=args.train_items, sigma_items=args.sigma_items, sigma_steps=args.sigma_steps,
         steps_list=args.steps_list,
-        eval_size=args.eval_size, margin=not args.no_margin, grids=not args.no_grids, device=args.device,
+        size=args.size, eval_size=args.eval_size, margin=not args.no_margin, grids=not args.no_grids, device=args.device,
         precision=args.precision,
         run=RunOptions(steps=args.steps, sampler=args.sampler, guidance=args.guidance, seed=args.seed),
         command="python -m relight_core " + shlex.join(sys.argv[1:]) if sys.argv[1:2] == ["evaluate"] else "")

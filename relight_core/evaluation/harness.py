@@ -4,10 +4,13 @@ Everything goes through the public `Relighter` API and the dataset format (`Reli
 docs/DATA.md), so any model folder or preset can be measured. An item is one direction of a
 synthetic scene (input under probe A → target under probe B); the lighting handed to the model is
 exactly the dataset's camera-frame panorama of the target (`env<B>/`), passed as
-`RelightRequest.camera_probe`. Next to the model's numbers, each item set gets:
+`RelightRequest.camera_probe`. Items are measured at the model's size, or at another size
+(`evaluate --size`): then, as in the CLI and the studio, the model runs at its size and its results
+come back by guided ratio upsampling — how a model trained at a small size is compared with others. Next to the model's numbers, each item set gets:
 
 * floor — the input returned unchanged, as relit and as albedo;
-* ceiling — the model's tokenizer encode→decode of the ground-truth target and albedo;
+* ceiling — the model's tokenizer encode→decode of the ground-truth target and albedo (at the
+  model's size, brought to the measured size the way results are when the two differ);
 * probe-following margin — with the same input relit under both probes,
   ½[(P(r_B, t_B) − P(r_B, t_A)) + (P(r_A, t_A) − P(r_A, t_B))], P the protocol PSNR, t_X the scene
   under probe X (t_A is the input itself): exactly 0 for a model whose output ignores the probe;
@@ -108,14 +111,30 @@ class RunOptions:
     seed: int = 0
 
 
+def model_size(relighter: Relighter, frames: np.ndarray) -> np.ndarray:
+    """Frames [T,H,W,3] as the CLI and the studio hand them to the model: long side at its size."""
+    return media.resize_frames(frames, relighter.spec.size, multiple=relighter.frame_multiple)
+
+
 def relight(relighter: Relighter, frames: np.ndarray, probe: np.ndarray, options: RunOptions
             ) -> tuple[np.ndarray, np.ndarray, float]:
-    """(relit, albedo, seconds) of frames relit under a camera-frame probe."""
+    """(relit, albedo, seconds) of frames relit under a camera-frame probe, at the frames' size.
+
+    Frames at another size than the model's go through the pipeline as the CLI and the studio run
+    it: shrunk (or grown) to the model's size, relit there, and brought back by guided ratio
+    upsampling (`upsample.guided_ratio_upsample`).
+    """
+    from relight_core.upsample import guided_ratio_upsample
+
     started = time.perf_counter()
+    small = model_size(relighter, frames)
     result = relighter.relight(RelightRequest(
-        frames, mode="relight", camera_probe=probe, steps=options.steps, sampler=options.sampler,
+        small, mode="relight", camera_probe=probe, steps=options.steps, sampler=options.sampler,
         guidance=options.guidance, seed=options.seed))
-    return result.relit, result.albedo, time.perf_counter() - started
+    relit, albedo = result.relit, result.albedo
+    if small.shape != frames.shape:
+        relit, albedo = (guided_ratio_upsample(frames, small, x) for x in (relit, albedo))
+    return relit, albedo, time.perf_counter() - started
 
 
 def _compute(relighter: Relighter):
@@ -137,9 +156,22 @@ def _decode(relighter: Relighter, latents: torch.Tensor, length: int) -> np.ndar
 
 
 def reconstruct(relighter: Relighter, frames01: np.ndarray) -> np.ndarray:
-    """The tokenizer's encode → decode of frames [T,H,W,3] in [0, 1] (the ceiling)."""
+    """The tokenizer's encode → decode of frames [T,H,W,3] in [0, 1] at the model's size."""
     padded = pad_to_valid(frames01, relighter.tokenizer.temporal_factor)
     return _decode(relighter, _encode(relighter, padded), frames01.shape[0])
+
+
+def ceiling(relighter: Relighter, truth: np.ndarray, frames: np.ndarray) -> np.ndarray:
+    """The best the pipeline could return for `truth` given the input `frames` (both [T,H,W,3]): the
+    tokenizer's reconstruction of the truth at the model's size, brought to the frames' size the way
+    results are (guided ratio upsampling against the input) when that size differs."""
+    from relight_core.upsample import guided_ratio_upsample
+
+    small_truth = model_size(relighter, truth)
+    recon = reconstruct(relighter, small_truth)
+    if small_truth.shape == truth.shape:
+        return recon
+    return guided_ratio_upsample(frames, model_size(relighter, frames), recon)
 
 
 class _SigmaSweep:
@@ -189,10 +221,13 @@ def _registered(sampler):
 def sigma_errors(relighter: Relighter, item: EvalItem, options: RunOptions, lighting: bool = True) -> list[dict]:
     """Per σ of the schedule: the denoiser's latent MSE and decoded protocol PSNR, relit and albedo.
 
-    The item is cut to the model's first chunk; `lighting=False` zeroes the lighting (mode "random").
+    The item is cut to the model's first chunk and measured at the model's size; `lighting=False`
+    zeroes the lighting (mode "random").
     """
     item = replace(item, **{k: getattr(item, k)[:relighter.spec.chunk_frames]
                             for k in ("input", "target", "albedo", "mask", "probe", "other_probe")})
+    if model_size(relighter, item.input).shape != item.input.shape:
+        item = resized(item, relighter.spec.size, relighter.frame_multiple)
     sweep = _SigmaSweep(relighter, item, options.seed)
     with _registered(sweep) as name:
         relighter.relight(RelightRequest(
@@ -216,7 +251,7 @@ def probe_margin(result: np.ndarray, other_result: np.ndarray, item: EvalItem) -
 
 def measure_item(relighter: Relighter, item: EvalItem, options: RunOptions, margin: bool = True
                  ) -> tuple[dict, dict]:
-    """(metrics, outputs) of one item at the model's size: model, floor, ceiling (+ the margin)."""
+    """(metrics, outputs) of one item at its size: model, floor, ceiling (+ the margin)."""
     relit, albedo, seconds = relight(relighter, item.input, item.probe, options)
     out = {
         "name": item.name, "seconds": seconds,
@@ -224,8 +259,8 @@ def measure_item(relighter: Relighter, item: EvalItem, options: RunOptions, marg
                   "albedo": albedo_metrics(albedo, item.albedo, item.mask)},
         "floor": {"relit": protocol_metrics(item.input, item.target, item.mask),
                   "albedo": albedo_metrics(item.input, item.albedo, item.mask)},
-        "ceiling": {"relit": protocol_metrics(reconstruct(relighter, item.target), item.target, item.mask),
-                    "albedo": albedo_metrics(reconstruct(relighter, item.albedo), item.albedo, item.mask)},
+        "ceiling": {"relit": protocol_metrics(ceiling(relighter, item.target, item.input), item.target, item.mask),
+                    "albedo": albedo_metrics(ceiling(relighter, item.albedo, item.input), item.albedo, item.mask)},
     }
     if margin:
         other, _, _ = relight(relighter, item.input, item.other_probe, options)
@@ -261,10 +296,7 @@ def measure_full_resolution(relighter: Relighter, native: EvalItem, size: int, o
 
     full = resized(native, size, multiple=1)
 
-    def model_size(frames: np.ndarray) -> np.ndarray:
-        return media.resize_frames(frames, relighter.spec.size, multiple=relighter.frame_multiple)
-
-    small = model_size(full.input)
+    small = model_size(relighter, full.input)
     if reuse is not None and reuse[0].shape == small.shape and np.array_equal(reuse[0], small):
         predicted = reuse[1]
     else:
@@ -276,7 +308,7 @@ def measure_full_resolution(relighter: Relighter, native: EvalItem, size: int, o
                "floor": {k: protocol_metrics(full.input, truth, full.mask) for k, truth in truths.items()}}
     outputs = {"input": full.input, "target": full.target}
     for source, smalls in (("model", predicted),
-                           ("oracle", {k: model_size(truth) for k, truth in truths.items()})):
+                           ("oracle", {k: model_size(relighter, truth) for k, truth in truths.items()})):
         metrics[source] = {}
         for key, truth in truths.items():
             plain = plain_upsample(smalls[key], H, W)

@@ -88,7 +88,8 @@ def markdown(results: dict) -> str:
         lines += ["```", results["command"], "```", ""]
     lines += [f"Model `{model['source']}` ({'trained' if model['trained'] else 'random weights'}), "
               f"{model['steps']} {model['sampler']} steps, guidance {model['guidance']}, seed {model['seed']}, "
-              f"{model['precision']} on {model['device']}; frames {data['model_size'][1]}×{data['model_size'][0]} "
+              f"{model['precision']} on {model['device']}; model size {model['size']} px, measured at "
+              f"{data['measured_size'][1]}×{data['measured_size'][0]} "
               f"(dataset {data['native_size'][1]}×{data['native_size'][0]}), {data['frames']} frames per item; "
               f"{results['seconds']:.0f} s in all.", "", PROTOCOL, "",
               f"## {data['split'].capitalize()} split ({test['items']} items, "

@@ -41,6 +41,7 @@ class EvalConfig:
     sigma_items: int = 2                # items per split for the per-σ denoiser error (0: none)
     sigma_steps: int | None = None      # its σ schedule's steps (None: the run's steps, at least 20)
     steps_list: tuple[int, ...] = ()    # extra sampling-step counts for the steps-vs-quality table
+    size: int | None = None             # measure at this long side (None: the model's working size)
     eval_size: int | None = None        # also measure full-resolution output at this long side
     margin: bool = True                 # the probe-following margin (one more model run per item)
     grids: bool = True
@@ -80,12 +81,13 @@ def run_evaluation(config: EvalConfig, log: Callable[[str], None] = _log) -> dic
     native = load_items(config.data, config.split, config.limit)
     if not native:
         raise InputError(f"No readable two-probe items in {config.data}/{config.split}; re-render the split.")
-    test = [resized(item, size, multiple) for item in native]
+    measured = config.size or size  # another size: the model runs at its own, results come back guided
+    test = [resized(item, measured, multiple) for item in native]
     train: list[EvalItem] = []
     train_note = None
     if config.train_items:
         try:
-            train = [resized(item, size, multiple)
+            train = [resized(item, measured, multiple)
                      for item in load_items(config.data, "train", config.train_items, spread=True)]
         except InputError as exc:
             train_note = str(exc)
@@ -98,7 +100,7 @@ def run_evaluation(config: EvalConfig, log: Callable[[str], None] = _log) -> dic
                   "tokenizer": relighter.spec.tokenizer, "steps": options.steps, "sampler": options.sampler,
                   "guidance": options.guidance, "seed": options.seed, "device": str(relighter.device)},
         "data": {"root": str(config.data), "split": config.split, "frames": int(test[0].input.shape[0]),
-                 "native_size": list(native[0].input.shape[1:3]), "model_size": list(test[0].input.shape[1:3])},
+                 "native_size": list(native[0].input.shape[1:3]), "measured_size": list(test[0].input.shape[1:3])},
         "protocol": report.PROTOCOL,
     }
     log(f"evaluate: {relighter.spec.name} ({results['model']['precision']}, {options.steps} {options.sampler} "

@@ -16,7 +16,9 @@ reports on and which the choice therefore never sees.
 Each gain's outputs are also scored after the edge-aware smoothing of their offset
 (`upsample.smooth_offset`, guided by the input) at each radius of `RADII` (0 = none): a post-process
 on the same run, so the radii cost no extra sampling. Relit and albedo each get the (gain, radius)
-pair with the highest mean PSNR.
+pair with the highest mean PSNR. `--size` scores at another size than the model's (its data's, for a
+model trained smaller): the filter still works at the model's size, as in `Relighter`, and the results
+come back by guided ratio upsampling, as in the CLI and the studio.
 
     python -m relight_core.training.calibrate --model DIR --data ~/.cache/unirelight-studio/data --items 48
     python -m relight_core.training.calibrate ... --write     # also store the gains in DIR/config.json
@@ -43,9 +45,12 @@ def measure_gains(relighter, items, grid=GRID, seed: int = 0, radii=RADII
 
     The relit and albedo outputs of one sampling run do not depend on each other's gain (the gain
     scales each clip's x0), so one run per gain measures both curves."""
-    from relight_core.evaluation.harness import RunOptions, relight
+    from relight_core.evaluation.harness import RunOptions, model_size, relight
     from relight_core.evaluation.metrics import protocol_psnr
-    from relight_core.upsample import smooth_offset
+    from relight_core.upsample import guided_ratio_upsample, smooth_offset
+
+    def at_item_size(item, small, output):   # as the CLI and studio bring results to the input's size
+        return output if small.shape == item.input.shape else guided_ratio_upsample(item.input, small, output)
 
     spec = relighter.spec
     table = {}
@@ -54,9 +59,11 @@ def measure_gains(relighter, items, grid=GRID, seed: int = 0, radii=RADII
             relighter.spec = replace(spec, residual_gain=(gain, gain), offset_filter=(0, 0))
             scores = {radius: ([], []) for radius in radii}
             for item in items:
-                relit, albedo, _ = relight(relighter, item.input, item.probe, RunOptions(seed=seed))
+                small = model_size(relighter, item.input)   # the filter works at the model's size, as in Relighter
+                relit, albedo, _ = relight(relighter, small, item.probe, RunOptions(seed=seed))
                 for radius, (relit_psnr, albedo_psnr) in scores.items():
-                    smooth = smooth_offset(item.input, relit, radius), smooth_offset(item.input, albedo, radius)
+                    smooth = (at_item_size(item, small, smooth_offset(small, relit, radius)),
+                              at_item_size(item, small, smooth_offset(small, albedo, radius)))
                     relit_psnr.append(protocol_psnr(smooth[0], item.target, item.mask))
                     albedo_psnr.append(protocol_psnr(smooth[1], item.albedo, item.mask))
             for radius, (relit_psnr, albedo_psnr) in scores.items():
@@ -84,6 +91,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--skip", type=int, default=0,
                         help="leave out the split's first items: with --split test --skip 16 the gain is "
                              "chosen on held-out scenes that `evaluate --limit 16` never reports")
+    parser.add_argument("--size", type=int, default=None,
+                        help="score at this long side (default: the model's size); results come back to it "
+                             "by guided ratio upsampling, as in the CLI and studio")
     parser.add_argument("--write", action="store_true", help="store the gains in the model's config.json")
     args = parser.parse_args(argv)
     if args.skip < 0:
@@ -99,7 +109,9 @@ def main(argv: list[str] | None = None) -> int:
         if not spec.residual:
             raise InputError(f"{args.model} is not a residual model; only its offsets can be calibrated.")
         relighter = Relighter.load(args.model)
-        items = [resized(item, relighter.spec.size, relighter.frame_multiple)
+        if args.size is not None and args.size < 8:
+            raise InputError(f"--size takes a long side in pixels, 8 or more, not {args.size}.")
+        items = [resized(item, args.size or relighter.spec.size, relighter.frame_multiple)
                  for item in load_items(args.data, args.split, args.items, spread=True, skip=args.skip)]
     except InputError as exc:
         parser.exit(2, f"error: {exc}\n")
@@ -124,6 +136,7 @@ def main(argv: list[str] | None = None) -> int:
         data["offset_filter"] = [relit_radius, albedo_radius]
         data.setdefault("notes", {})["calibration"] = {
             "split": args.split, "items": len(items), "skipped": args.skip,
+            "size": int(max(items[0].input.shape[1:3])),
             "metric": "protocol PSNR (scale fit, foreground)",
             "table": {str(g): {str(r): {k: round(v, 3) for k, v in table[g, r].items()} for r in radii}
                       for g in gains}}

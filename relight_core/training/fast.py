@@ -77,6 +77,7 @@ class FastConfig:
     zero_head: bool = False              # zero the output layer after --init (a new parameterisation)
     export_steps: int = 1                # the exported model's default sampling steps
     checkpoint_every_minutes: float = 5.0  # <out>/checkpoint.pt (weights, EMA, optimizer, RNG): exact resume
+    train_size: int | None = None        # shrink the packs' images to this side (px) first; the model's size
     recipe: Recipe = field(default_factory=Recipe)
 
 
@@ -88,6 +89,29 @@ def dit_config(config: FastConfig) -> DiTConfig:
 def _video(x: torch.Tensor) -> torch.Tensor:
     """[B,3,H,W] → [B,3,1,H,W]."""
     return x[:, :, None]
+
+
+def shrink_pack(pack: dict, size: int) -> dict:
+    """The pack with its images shrunk to `size` px a side, as `Relighter` shrinks frames (antialiased
+    bilinear, `media.resize`); the probes stay (they are re-gridded to the frames' size per batch)."""
+    height, width = pack["rgb"].shape[-2:]
+    if size == width and size == height:
+        return pack
+    if size > max(height, width) or size % 8:
+        raise ValueError(f"--train-size {size} must be a multiple of 8 no larger than the pack's {width} px")
+    H, W = (size, round(width * size / height)) if height >= width else (round(height * size / width), size)
+
+    def shrink(images: torch.Tensor) -> torch.Tensor:   # [..., C, h, w] uint8 or bool
+        lead = images.shape[:-2]
+        x = images.reshape(-1, 1, height, width).float()
+        x = torch.nn.functional.interpolate(x, size=(H, W), mode="bilinear", antialias=True, align_corners=False)
+        return x.reshape(*lead, H, W)
+
+    out = dict(pack)
+    out["rgb"] = shrink(pack["rgb"]).round().clamp(0, 255).to(torch.uint8)
+    out["albedo"] = shrink(pack["albedo"]).round().clamp(0, 255).to(torch.uint8)
+    out["mask"] = shrink(pack["mask"]) > 0.5
+    return out
 
 
 def make_batch(pack: dict, tokenizer: PixelTokenizer, indices: torch.Tensor, target: torch.Tensor,
@@ -211,6 +235,9 @@ def train(config: FastConfig) -> dict:
         torch.backends.cudnn.allow_tf32 = True
     pack = load_pack(config.pack, device)
     test = load_pack(config.test_pack, device) if config.test_pack else None
+    if config.train_size is not None:
+        pack = shrink_pack(pack, config.train_size)
+        test = shrink_pack(test, config.train_size) if test is not None else None
     tokenizer = PixelTokenizer(config.patch)
     size = int(pack["rgb"].shape[-1])
     lighting_size = int(pack["lighting_size"])
@@ -340,6 +367,8 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--zero-head", action="store_true", help="zero the output layer after --init")
     parser.add_argument("--residual", action="store_true",
                         help="train relit/albedo as offsets from the input (ModelSpec.residual)")
+    parser.add_argument("--train-size", type=int, default=None,
+                        help="train (and export the model) at this image size, the packs shrunk to it (px)")
     parser.add_argument("--p-sigma-max", type=float, default=0.0,
                         help="share of samples trained at σ_max, the one-step sampler's only call")
     defaults = FastConfig(pack=Path(), out=Path())
