@@ -50,3 +50,24 @@ def test_app_refuses_fp16_on_the_cpu_in_one_sentence(capsys):
     assert app.main(["--precision", "fp16", "--model", "tiny", "--no-browser"]) == 2
     assert capsys.readouterr().err.strip() == \
         "error: fp16 runs only on a CUDA GPU, not on cpu; use --precision auto, fp32 or bf16 here."
+
+
+def test_the_working_size_starts_at_the_models_and_says_where_results_come_back(tmp_path):
+    import gradio as gr
+
+    from ui.layout import build_demo
+
+    def size_dropdown(full_resolution: bool):
+        studio = Studio(StudioConfig(model="tiny", envmaps_dir=ROOT / "envmaps", work_dir=tmp_path / str(full_resolution),
+                                     full_resolution=full_resolution))
+        demo = build_demo(studio)
+        found = [block for block in demo.blocks.values()
+                 if isinstance(block, gr.Dropdown) and block.label.startswith("Working resolution")]
+        assert len(found) == 1
+        return studio.relighter().spec, found[0]
+
+    spec, dropdown = size_dropdown(True)
+    assert dropdown.value == spec.size == 64
+    assert "own size is 64 px" in dropdown.info and "input's own resolution" in dropdown.info
+    _, raw = size_dropdown(False)
+    assert "own size is 64 px" in raw.info and "resolution" not in raw.info

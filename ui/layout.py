@@ -78,7 +78,11 @@ def build_demo(studio: Studio, examples_dir: Path | None = None) -> gr.Blocks:
                 with gr.Row(visible=False) as frame_row:
                     frame_start = FrameSlider(0, 1, value=0, step=1, label="First frame")
                     frame_end = FrameSlider(0, 1, value=0, step=1, label="Last frame")
-                size = gr.Dropdown(sizes, value=spec.size, label="Working resolution (long side, pixels)")
+                size_info = (f"The model was trained at {spec.size} px and works best there." if spec.trained
+                             else f"The model's own size is {spec.size} px.") + (
+                    " Results come back at your input's own resolution." if studio.config.full_resolution else "")
+                size = gr.Dropdown(sizes, value=spec.size, label="Working resolution (long side, pixels)",
+                                   info=size_info)
                 estimate = gr.Markdown("Upload an image or a video to see the time estimate.",
                                        elem_id="estimate")
                 mode = gr.Radio(list(MODES), value="Relight", label="What to make", elem_id="mode")
