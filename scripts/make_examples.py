@@ -83,7 +83,9 @@ def main(argv: list[str] | None = None) -> int:
             frames=frames, fps=loaded.fps, audio_path=loaded.audio_path, mode="relight", probe=probe,
             rotation=rotation, steps=args.steps, seed=0))
         out_dir = root / "results" / f"{index:02d}"
-        files = outputs.write_outputs(outputs.result_clips(result, "relight", frames), out_dir, video, result.fps,
+        # At the input's own resolution, as the studio returns results (guided ratio upsampling).
+        clips = outputs.result_clips(result, "relight", frames, full=np.asarray(loaded.frames, dtype=np.float32))
+        files = outputs.write_outputs(clips, out_dir, video, result.fps,
                                       result.audio_path, stills=True)
         keys = {"relit_still": "relit_still", "albedo_still": "albedo_still"}
         if video:
