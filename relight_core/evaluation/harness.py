@@ -6,7 +6,8 @@ synthetic scene (input under probe A → target under probe B); the lighting han
 exactly the dataset's camera-frame panorama of the target (`env<B>/`), passed as
 `RelightRequest.camera_probe`. Items are measured at the model's size, or at another size
 (`evaluate --size`): then, as in the CLI and the studio, the model runs at its size and its results
-come back by guided ratio upsampling — how a model trained at a small size is compared with others. Next to the model's numbers, each item set gets:
+come back by guided ratio upsampling — how a model trained at a small size is compared with others.
+Next to the model's numbers, each item set gets:
 
 * floor — the input returned unchanged, as relit and as albedo;
 * ceiling — the model's tokenizer encode→decode of the ground-truth target and albedo (at the

@@ -91,15 +91,19 @@ def _video(x: torch.Tensor) -> torch.Tensor:
     return x[:, :, None]
 
 
-def shrink_pack(pack: dict, size: int) -> dict:
-    """The pack with its images shrunk to `size` px a side, as `Relighter` shrinks frames (antialiased
-    bilinear, `media.resize`); the probes stay (they are re-gridded to the frames' size per batch)."""
+def shrink_pack(pack: dict, size: int, multiple: int = 8) -> dict:
+    """The pack with its images' long side shrunk to `size` px (sides multiples of `multiple`, the
+    tokenizer's patch), as the CLI and studio shrink frames for the model (`media.target_size`,
+    antialiased bilinear); the probes stay (they are re-gridded to the frames' size per batch)."""
+    from relight_core.media import target_size
+
     height, width = pack["rgb"].shape[-2:]
-    if size == width and size == height:
+    if size > max(height, width) or size % multiple:
+        raise ValueError(f"--train-size {size} must be a multiple of {multiple} no larger than the pack's "
+                         f"{max(height, width)} px")
+    H, W = target_size(height, width, size, multiple)
+    if (H, W) == (height, width):
         return pack
-    if size > max(height, width) or size % 8:
-        raise ValueError(f"--train-size {size} must be a multiple of 8 no larger than the pack's {width} px")
-    H, W = (size, round(width * size / height)) if height >= width else (round(height * size / width), size)
 
     def shrink(images: torch.Tensor) -> torch.Tensor:   # [..., C, h, w] uint8 or bool
         lead = images.shape[:-2]
@@ -236,8 +240,8 @@ def train(config: FastConfig) -> dict:
     pack = load_pack(config.pack, device)
     test = load_pack(config.test_pack, device) if config.test_pack else None
     if config.train_size is not None:
-        pack = shrink_pack(pack, config.train_size)
-        test = shrink_pack(test, config.train_size) if test is not None else None
+        pack = shrink_pack(pack, config.train_size, config.patch)
+        test = shrink_pack(test, config.train_size, config.patch) if test is not None else None
     tokenizer = PixelTokenizer(config.patch)
     size = int(pack["rgb"].shape[-1])
     lighting_size = int(pack["lighting_size"])
