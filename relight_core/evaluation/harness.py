@@ -117,6 +117,14 @@ def model_size(relighter: Relighter, frames: np.ndarray) -> np.ndarray:
     return media.resize_frames(frames, relighter.spec.size, multiple=relighter.frame_multiple)
 
 
+def brought_back(frames: np.ndarray, small: np.ndarray, output: np.ndarray) -> np.ndarray:
+    """`output`, made by the model from `small` (the frames at its size), at the frames' size, the way
+    the CLI and the studio return results (guided ratio upsampling); as it is when the sizes agree."""
+    from relight_core.upsample import guided_ratio_upsample
+
+    return output if small.shape == frames.shape else guided_ratio_upsample(frames, small, output)
+
+
 def relight(relighter: Relighter, frames: np.ndarray, probe: np.ndarray, options: RunOptions
             ) -> tuple[np.ndarray, np.ndarray, float]:
     """(relit, albedo, seconds) of frames relit under a camera-frame probe, at the frames' size.
@@ -125,17 +133,13 @@ def relight(relighter: Relighter, frames: np.ndarray, probe: np.ndarray, options
     it: shrunk (or grown) to the model's size, relit there, and brought back by guided ratio
     upsampling (`upsample.guided_ratio_upsample`).
     """
-    from relight_core.upsample import guided_ratio_upsample
-
     started = time.perf_counter()
     small = model_size(relighter, frames)
     result = relighter.relight(RelightRequest(
         small, mode="relight", camera_probe=probe, steps=options.steps, sampler=options.sampler,
         guidance=options.guidance, seed=options.seed))
-    relit, albedo = result.relit, result.albedo
-    if small.shape != frames.shape:
-        relit, albedo = (guided_ratio_upsample(frames, small, x) for x in (relit, albedo))
-    return relit, albedo, time.perf_counter() - started
+    return (brought_back(frames, small, result.relit), brought_back(frames, small, result.albedo),
+            time.perf_counter() - started)
 
 
 def _compute(relighter: Relighter):
@@ -166,13 +170,7 @@ def ceiling(relighter: Relighter, truth: np.ndarray, frames: np.ndarray) -> np.n
     """The best the pipeline could return for `truth` given the input `frames` (both [T,H,W,3]): the
     tokenizer's reconstruction of the truth at the model's size, brought to the frames' size the way
     results are (guided ratio upsampling against the input) when that size differs."""
-    from relight_core.upsample import guided_ratio_upsample
-
-    small_truth = model_size(relighter, truth)
-    recon = reconstruct(relighter, small_truth)
-    if small_truth.shape == truth.shape:
-        return recon
-    return guided_ratio_upsample(frames, model_size(relighter, frames), recon)
+    return brought_back(frames, model_size(relighter, frames), reconstruct(relighter, model_size(relighter, truth)))
 
 
 class _SigmaSweep:

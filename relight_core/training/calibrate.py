@@ -45,12 +45,9 @@ def measure_gains(relighter, items, grid=GRID, seed: int = 0, radii=RADII
 
     The relit and albedo outputs of one sampling run do not depend on each other's gain (the gain
     scales each clip's x0), so one run per gain measures both curves."""
-    from relight_core.evaluation.harness import RunOptions, model_size, relight
+    from relight_core.evaluation.harness import RunOptions, brought_back, model_size, relight
     from relight_core.evaluation.metrics import protocol_psnr
-    from relight_core.upsample import guided_ratio_upsample, smooth_offset
-
-    def at_item_size(item, small, output):   # as the CLI and studio bring results to the input's size
-        return output if small.shape == item.input.shape else guided_ratio_upsample(item.input, small, output)
+    from relight_core.upsample import smooth_offset
 
     spec = relighter.spec
     table = {}
@@ -62,8 +59,8 @@ def measure_gains(relighter, items, grid=GRID, seed: int = 0, radii=RADII
                 small = model_size(relighter, item.input)   # the filter works at the model's size, as in Relighter
                 relit, albedo, _ = relight(relighter, small, item.probe, RunOptions(seed=seed))
                 for radius, (relit_psnr, albedo_psnr) in scores.items():
-                    smooth = (at_item_size(item, small, smooth_offset(small, relit, radius)),
-                              at_item_size(item, small, smooth_offset(small, albedo, radius)))
+                    smooth = (brought_back(item.input, small, smooth_offset(small, relit, radius)),
+                              brought_back(item.input, small, smooth_offset(small, albedo, radius)))
                     relit_psnr.append(protocol_psnr(smooth[0], item.target, item.mask))
                     albedo_psnr.append(protocol_psnr(smooth[1], item.albedo, item.mask))
             for radius, (relit_psnr, albedo_psnr) in scores.items():
