@@ -21,6 +21,7 @@ from pathlib import Path
 import torch
 from safetensors.torch import load_file, save_file
 
+from relight_core.arguments import MAX_ENSEMBLE
 from relight_core.dit import DIT_PRESETS, DiTConfig, JointDiT
 from relight_core.errors import InputError
 from relight_core.precision import check_precision
@@ -52,6 +53,8 @@ class ModelSpec:
     residual_gain: tuple[float, float] = (1.0, 1.0)  # (relit, albedo) offset scale, fitted by training.calibrate
     offset_filter: tuple[int, int] = (0, 0)  # (relit, albedo) guided-filter radius (px at `size`) of a
                                              # residual model's offset, 0 = off (upsample.smooth_offset)
+    ensemble: int = 1                    # samples averaged into each result; every second one is run on the
+                                         # mirror image under the mirrored light (Relighter, MAX_ENSEMBLE)
     notes: dict = field(default_factory=dict)
 
     def to_json(self) -> dict:
@@ -80,6 +83,11 @@ class ModelSpec:
                 raise InputError(f"The model's config.json has offset_filter {radii!r}; it takes two whole numbers "
                                  "of pixels from 0 to 1024 (relit, albedo), or leave it out.")
             kwargs["offset_filter"] = tuple(radii)
+        if "ensemble" in kwargs:
+            count = kwargs["ensemble"]
+            if not isinstance(count, int) or isinstance(count, bool) or not 1 <= count <= MAX_ENSEMBLE:
+                raise InputError(f"The model's config.json has ensemble {count!r}; it takes a whole number of "
+                                 f"samples from 1 to {MAX_ENSEMBLE}, or leave it out.")
         return cls(**kwargs)
 
 

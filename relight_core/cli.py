@@ -13,7 +13,7 @@ import sys
 import tempfile
 from pathlib import Path
 
-from relight_core.arguments import (MAX_INTENSITY, MAX_ROTATION_DEG, MAX_SEED, PRECISIONS, OneLineParser,
+from relight_core.arguments import (MAX_ENSEMBLE, MAX_INTENSITY, MAX_ROTATION_DEG, MAX_SEED, PRECISIONS, OneLineParser,
                                     finite_float, int_range, row_list, seed, seed_list, terminate_as_interrupt)
 from relight_core.data.cli import add_data_commands, positive_int
 from relight_core.errors import InputError
@@ -76,6 +76,9 @@ def _add_model_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--sampler", type=_sampler, default=None, help="res2ab (default), euler or heun")
     p.add_argument("--guidance", type=finite_float(0.0, 100.0, what="guidance"), default=0.0,
                    help="classifier-free guidance (0 = off, one pass)")
+    p.add_argument("--ensemble", type=int_range(1, MAX_ENSEMBLE, "ensemble"), default=None,
+                   help="samples averaged into each result, every second one on the mirror image "
+                        f"(1 to {MAX_ENSEMBLE}; default: the model's)")
     p.add_argument("--size", type=positive_int, default=None, help="working resolution: long side in pixels")
     p.add_argument("--frames", type=_frame_range, default=(0, None), metavar="START:END",
                    help="frame range of a video (END exclusive)")
@@ -211,7 +214,7 @@ def _media_job(args):
                     temperature=getattr(args, "temperature", None), tint=getattr(args, "tint", 0.0),
                     camera_pitch=getattr(args, "camera_pitch", 0.0), camera_roll=getattr(args, "camera_roll", 0.0),
                     seeds=tuple(getattr(args, "seeds", None) or (getattr(args, "seed", 0),)), steps=args.steps,
-                    sampler=args.sampler, guidance=args.guidance, size=args.size, frames=args.frames, raw=args.raw)
+                    sampler=args.sampler, guidance=args.guidance, ensemble=args.ensemble, size=args.size, frames=args.frames, raw=args.raw)
 
 
 def _run_media_command(args) -> int:

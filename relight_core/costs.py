@@ -23,15 +23,17 @@ class CostModel:
     _flops_per_second: float | None = None  # measured on the last run
     _overhead_per_pixel: float | None = None  # seconds per frame pixel outside the network, measured
 
-    def estimate_seconds(self, num_frames: int, height: int, width: int, steps: int | None = None) -> float:
+    def estimate_seconds(self, num_frames: int, height: int, width: int, steps: int | None = None,
+                         ensemble: int | None = None) -> float:
         """Rough wall time of a request, from a measured (or assumed) cost per token."""
         steps = steps or self.spec.steps
+        members = ensemble or self.spec.ensemble
         chunks = plan_chunks(num_frames, self.spec.chunk_frames, self.spec.overlap_frames)
         t = self.tokenizer.latent_frames(min(num_frames, self.spec.chunk_frames)) if num_frames > 1 else 1
         tokens = NUM_CLIPS * t * (height // self.frame_multiple) * (width // self.frame_multiple)
         per_eval = self._seconds_per_eval_at(tokens)
         overhead = (self._overhead_per_pixel or 0.0) * num_frames * height * width  # load, light, decode
-        return len(chunks) * (steps + 1) * per_eval + overhead
+        return len(chunks) * (steps + 1) * members * per_eval + overhead
 
     def warm_up(self) -> float:
         """Two small real runs (a grey image at the model's size up to 256 px, one step): the first pays
@@ -43,14 +45,15 @@ class CostModel:
         return sum(self.relight(RelightRequest(frames, probe=probe, steps=1, rotation=angle)).seconds
                    for angle in (0.0, 90.0))  # two rotations: the second run encodes its lighting too
 
-    def memory_estimate(self, num_frames: int, height: int, width: int, guidance: bool = False
-                        ) -> tuple[int, int]:
+    def memory_estimate(self, num_frames: int, height: int, width: int, guidance: bool = False,
+                        members: int = 1) -> tuple[int, int]:
         """Rough peak bytes of a request at this working size: (host arrays, model activations).
 
         Host: the clip's float32 frames, outputs and copies (≈ 6 arrays) plus one chunk's lighting
         panoramas and encodings (≈ 8). Model (on its device): the tokenizer's widest full-resolution
         stage (≈ 9 live tensors of its first width at H/2 × W/2, both output clips at once) and the DiT's
-        ≈ (mlp_ratio + 12) float32 tensors of tokens × width (twice with guidance). Attention runs
+        ≈ (mlp_ratio + 12) float32 tensors of tokens × width (twice with guidance); both × the ensemble's
+        `members`, which run as one batch. Attention runs
         through fused kernels, linear in the token count. Measured peaks (CPU, fp32) are within 15 %:
         tiny at 2048 px 0.94 GB, the default model at 1024 px 0.79 GB.
         """
@@ -59,26 +62,26 @@ class CostModel:
         host = 6 * 12 * pixels * num_frames + 8 * 12 * pixels * chunk
         config = getattr(self.tokenizer, "config", None)
         first_width = getattr(config, "channels", (128,))[0]  # 128 for tokenizers that do not say
-        tokenizer = 2 * 9 * first_width * (pixels // 4) * 4 * chunk
+        tokenizer = 2 * 9 * first_width * (pixels // 4) * 4 * chunk * members
         t = self.tokenizer.latent_frames(chunk) if num_frames > 1 else 1
         tokens = NUM_CLIPS * t * max(1, height // self.frame_multiple) * max(1, width // self.frame_multiple)
-        dit = tokens * self.spec.dit.width * (self.spec.dit.mlp_ratio + 12) * 4 * (2 if guidance else 1)
+        dit = tokens * self.spec.dit.width * (self.spec.dit.mlp_ratio + 12) * 4 * (2 if guidance else 1) * members
         return int(host), int(tokenizer + dit)
 
     def check_memory(self, num_frames: int, height: int, width: int, guidance: bool = False,
-                     hint: str = "choose a smaller working size or fewer frames") -> None:
+                     hint: str = "choose a smaller working size or fewer frames", members: int = 1) -> None:
         """Raise InputError, before anything is allocated, when a request cannot fit in this machine's memory."""
         host_free, device_free = free_memory(self.device)
 
         def fits(h: int, w: int) -> bool:
-            host, model = self.memory_estimate(num_frames, h, w, guidance)
+            host, model = self.memory_estimate(num_frames, h, w, guidance, members)
             if device_free is None:  # the model runs in host memory too
                 return host + model <= host_free
             return host <= host_free and model <= device_free
 
         if fits(height, width):
             return
-        host, model = self.memory_estimate(num_frames, height, width, guidance)
+        host, model = self.memory_estimate(num_frames, height, width, guidance, members)
         need, free = (host + model, host_free) if device_free is None else \
             ((model, device_free) if model > device_free else (host, host_free))
         where = "this machine has" if device_free is None or need == host else f"{self.device} has"

@@ -37,6 +37,7 @@ class MediaJob:
     steps: int | None = None                    # None: the model's
     sampler: str | None = None                  # None: the model's
     guidance: float = 0.0
+    ensemble: int | None = None                 # samples averaged into each result; None: the model's
     size: int | None = None                     # working long side; None: the model's
     frames: tuple[int, int | None] = (0, None)  # frame range of a video, END exclusive
     raw: bool = False                           # write the model-size output (no guided upsampling)
@@ -75,10 +76,11 @@ def plan_job(job: MediaJob, relighter: Relighter, inputs: JobInputs) -> JobPlan:
     # Refuse a working size this machine cannot hold before allocating anything at that size.
     relighter.check_memory(source.frames.shape[0], *media.target_size(*source.frames.shape[1:3], size,
                                                                       relighter.frame_multiple),
-                           guidance=job.guidance > 0, hint="pass a smaller --size")
+                           guidance=job.guidance > 0, hint="pass a smaller --size",
+                           members=job.ensemble or relighter.spec.ensemble)
     frames = media.resize_frames(source.frames, size, multiple=relighter.frame_multiple)
     base = dict(fps=source.fps, audio_path=source.audio_path, audio_start=source.audio_start, steps=job.steps,
-                sampler=job.sampler, guidance=job.guidance, mode=job.mode, probe=inputs.probe, intensity=job.intensity)
+                sampler=job.sampler, guidance=job.guidance, ensemble=job.ensemble, mode=job.mode, probe=inputs.probe, intensity=job.intensity)
     if job.rotation is not None:
         base["rotation"] = job.rotation
     if job.rotate_light:

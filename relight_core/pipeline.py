@@ -30,6 +30,7 @@ import numpy as np
 import torch
 
 from relight_core import lighting
+from relight_core.arguments import MAX_ENSEMBLE
 from relight_core.checkpoint import ModelSpec, load_model, resolve_model
 from relight_core.chunking import crossfade_weights, pad_to_valid, plan_chunks, stitch
 from relight_core.costs import CostModel
@@ -105,6 +106,7 @@ class Relighter(CostModel):
         chunks = plan_chunks(num_frames, self.spec.chunk_frames, self.spec.overlap_frames)
         rotations = lighting.frame_rotations(num_frames, request.rotation, request.rotate_light, request.sweep)
         probe = self._prepared_probe(request)
+        members = request.ensemble or self.spec.ensemble
         sigmas = get_sigmas_karras(steps, sigma_min=0.002, sigma_max=80.0).to(self.device)
         evals_per_chunk = steps + 1 if request.guidance == 0 else 2 * (steps + 1)
 
@@ -131,14 +133,14 @@ class Relighter(CostModel):
             if probe is not None and probe.dim() == 4:  # camera-frame panoramas: this chunk's, padded
                 chunk_probe = probe[start:start + length]
                 chunk_probe = torch.cat([chunk_probe, chunk_probe[-1:].expand(padded.shape[0] - length, -1, -1, -1)])
-            condition, mask, lighting_latents = self._conditions(
-                request, padded, albedo_in, chunk_probe, rot, overlap)
+            condition, mask, lighting_latents = self._members(
+                request, padded, albedo_in, chunk_probe, rot, overlap, members)
             t = condition.shape[2] // NUM_CLIPS
             # Chunks that share no frames (an image model run frame by frame) share their noise, so
             # that consecutive frames are sampled alike and do not flicker.
             chunk_seed = index if self.spec.overlap_frames > 0 else 0
             generator = torch.Generator(device="cpu").manual_seed((request.seed * 1000003 + chunk_seed) % 2**64)
-            noise = torch.randn(condition.shape, generator=generator).to(self.device)
+            noise = torch.randn(condition.shape, generator=generator).to(self.device)  # member 0 first
             cond_args = {"lighting": lighting_latents}
             uncond_args = {"lighting": torch.zeros_like(lighting_latents)}
             denoiser = ConditionedDenoiser(guided(self.denoiser, cond_args, uncond_args, request.guidance),
@@ -169,7 +171,7 @@ class Relighter(CostModel):
                 x0 = yield from stream(work)
             except Stopped:
                 return
-            relit_chunk, albedo_chunk = self._decode(x0, t, length)
+            relit_chunk, albedo_chunk = self._decode(x0, t, length)  # the members' mean
             relit_chunk, albedo_chunk = self._smoothed(request.mode, chunk_frames, relit_chunk, albedo_chunk)
             weights = crossfade_weights(overlap[0].shape[0]) if overlap is not None else None
             stitch(relit_out, relit_chunk, start, weights)
@@ -182,13 +184,13 @@ class Relighter(CostModel):
         seconds = time.perf_counter() - started
         if evals_done:
             tokens = NUM_CLIPS * t * (height // self.frame_multiple) * (width // self.frame_multiple)
-            network = sum(network_seconds)
+            network = sum(network_seconds) / members  # the throughput of one member's sequence
             self._flops_per_second = evals_done * self._flops_per_eval(tokens) / max(network, 1e-6)
             self._overhead_per_pixel = max(seconds - network, 0.0) / (num_frames * height * width)
         yield Finished(RelightResult(relit_out, albedo_out, request.fps, request.audio_path, request.seed,
                                      request.mode, request.audio_start, seconds,
                                      {"chunks": len(chunks), "steps": steps, "sampler": sampler_name,
-                                      "evaluations": evals_done, "model": self.spec.name,
+                                      "evaluations": evals_done, "ensemble": members, "model": self.spec.name,
                                       "precision": self.precision,
                                       "trained": self.spec.trained}))
 
@@ -223,6 +225,10 @@ class Relighter(CostModel):
             raise InputError(f"Steps must be between 1 and 1000, not {request.steps}.")
         if not math.isfinite(request.guidance) or request.guidance < 0:
             raise InputError(f"Guidance must be a finite number ≥ 0, not {request.guidance}.")
+        if request.ensemble is not None and (isinstance(request.ensemble, bool) or not isinstance(
+                request.ensemble, (int, np.integer)) or not 1 <= request.ensemble <= MAX_ENSEMBLE):
+            raise InputError(f"The ensemble takes a whole number of samples from 1 to {MAX_ENSEMBLE}, "
+                             f"not {request.ensemble}.")
         if not math.isfinite(request.intensity) or request.intensity <= 0:
             raise InputError(f"Intensity must be a positive number, not {request.intensity}.")
         lighting.check_temperature(request.temperature)
@@ -231,7 +237,8 @@ class Relighter(CostModel):
         if isinstance(request.seed, bool) or not isinstance(request.seed, (int, np.integer)) \
                 or not 0 <= int(request.seed) <= MAX_SEED:
             raise InputError(f"The seed {request.seed} is out of range; use a whole number from 0 to {MAX_SEED}.")
-        self.check_memory(frames.shape[0], height, width, guidance=request.guidance > 0)
+        self.check_memory(frames.shape[0], height, width, guidance=request.guidance > 0,
+                          members=request.ensemble or self.spec.ensemble)
         return np.clip(frames, 0.0, 1.0)
 
     def _prepared_probe(self, request: RelightRequest) -> torch.Tensor | None:
@@ -273,11 +280,14 @@ class Relighter(CostModel):
             return self.tokenizer.encode(video.permute(3, 0, 1, 2)[None].to(self.device)).float()
 
     def _lighting_latents(self, probe: torch.Tensor, rotations: list[float], height: int, width: int,
-                          camera: torch.Tensor | None = None) -> torch.Tensor:
+                          camera: torch.Tensor | None = None, mirror: bool = False) -> torch.Tensor:
         """[1, 51, t, h, w]: (env_ldr, mask, env_log, mask, env_dir, mask) latents of one chunk;
-        `camera` is the camera-to-world rotation (`lighting.camera_rotation`) of a tilted camera."""
+        `camera` is the camera-to-world rotation (`lighting.camera_rotation`) of a tilted camera.
+        `mirror`: the light of the left↔right mirrored scene, the camera panorama flipped u → 1 − u
+        (env_dir, a direction per panorama pixel, stays), as training flips it (`training.fast`)."""
         tilt = None if camera is None else camera.tolist()
-        key = hashlib.sha1(probe.numpy().tobytes() + repr((rotations, height, width, tilt)).encode()).hexdigest()
+        key = hashlib.sha1(probe.numpy().tobytes()
+                           + repr((rotations, height, width, tilt, mirror)).encode()).hexdigest()
         if key in self._latent_cache:
             self._latent_cache.move_to_end(key)
             return self._latent_cache[key]
@@ -287,13 +297,33 @@ class Relighter(CostModel):
             panoramas = torch.stack([lighting.probe_in_camera(probe, height, width, rotation=r, cam_to_world=camera)
                                      for r in rotations])
         panoramas = lighting.lowpass_panorama(panoramas, self.spec.lighting_size)
+        if mirror:
+            panoramas = panoramas.flip(2)
         encodings = lighting.encode_lighting(panoramas)
         latents = pack_lighting(*(self._encode_signed(encodings[name]) for name in LIGHTING_KEYS))
         self._latent_cache[key] = latents
         return latents
 
-    def _conditions(self, request, frames, albedo, probe, rotations, overlap):
-        """Condition latent [1,16,3t,h,w], its per-frame mask [1,1,3t,1,1] and lighting [1,51,t,h,w]."""
+    def _members(self, request, frames, albedo, probe, rotations, overlap, members: int):
+        """`_conditions` for an ensemble of `members` samples stacked on the batch axis: condition
+        [members,16,3t,h,w], the shared mask [1,1,3t,1,1] and lighting [members,51,t,h,w]. Member 0 is
+        the plain request; every odd member is its mirror image (frames, albedo, the previous chunk's
+        output and the light flipped left↔right, `_decode` flips its result back), each member with its
+        own noise — averaging them estimates the posterior mean and cancels the model's left↔right bias."""
+        plain = self._conditions(request, frames, albedo, probe, rotations, overlap)
+        if members == 1:
+            return plain
+        mirrored = self._conditions(
+            request, _mirrored(frames), None if albedo is None else _mirrored(albedo), probe, rotations,
+            None if overlap is None else tuple(_mirrored(x) for x in overlap), mirror=True)
+        variants = [plain, mirrored]
+        condition = torch.cat([variants[m % 2][0] for m in range(members)])
+        lighting_latents = torch.cat([variants[m % 2][2] for m in range(members)])
+        return condition, plain[1], lighting_latents
+
+    def _conditions(self, request, frames, albedo, probe, rotations, overlap, mirror: bool = False):
+        """Condition latent [1,16,3t,h,w], its per-frame mask [1,1,3t,1,1] and lighting [1,51,t,h,w]
+        (`mirror`: the light of the mirrored scene; the frames given are mirrored by the caller)."""
         z_input = self._encode(frames)
         _, c, t, h, w = z_input.shape
         zeros = torch.zeros_like(z_input)
@@ -323,7 +353,8 @@ class Relighter(CostModel):
             lighting_latents = torch.zeros(1, 3 * (c + 1), t, h, w, device=self.device)
         else:
             camera = lighting.camera_rotation(request.camera_pitch, request.camera_roll)
-            lighting_latents = self._lighting_latents(probe, rotations, frames.shape[1], frames.shape[2], camera)
+            lighting_latents = self._lighting_latents(probe, rotations, frames.shape[1], frames.shape[2], camera,
+                                                      mirror)
         return condition, mask, lighting_latents
 
     def _network(self, x_in: torch.Tensor, c_noise: torch.Tensor, lighting: torch.Tensor,
@@ -334,13 +365,20 @@ class Relighter(CostModel):
     # -- outputs ----------------------------------------------------------------------------
 
     def _decode(self, x0: torch.Tensor, t: int, length: int) -> tuple[np.ndarray, np.ndarray]:
-        """Decode the relit and albedo clips of x0 to frames [length,H,W,3] in [0,1]."""
+        """Decode the relit and albedo clips of x0 to frames [length,H,W,3] in [0,1]; for an ensemble
+        (`_members`) the mean of its members, the mirrored ones flipped back first."""
+        members = x0.shape[0]
         clips = x0[:, :, t:].float()
-        both = torch.cat([clips[:, :, :t], clips[:, :, t:]], dim=0)  # [2, 16, t, h, w]
+        both = torch.cat([clips[:, :, :t], clips[:, :, t:]], dim=0)  # [2·members, 16, t, h, w]
         with torch.no_grad(), self._autocast():
             video = self.tokenizer.decode(both).float()
-        frames = ((video.clamp(-1, 1) + 1) / 2).permute(0, 2, 3, 4, 1).cpu().numpy()
-        return frames[0, :length], frames[1, :length]
+        frames = ((video.clamp(-1, 1) + 1) / 2).permute(0, 2, 3, 4, 1).cpu().numpy()[:, :length]
+        relit, albedo = frames[:members], frames[members:]
+        for clip in (relit, albedo):
+            clip[1::2] = clip[1::2, :, :, ::-1]          # the odd members were mirrored
+        if members == 1:
+            return relit[0], albedo[0]
+        return relit.mean(axis=0), albedo.mean(axis=0)
 
     def _smoothed(self, mode: str, frames: np.ndarray, relit: np.ndarray, albedo: np.ndarray
                   ) -> tuple[np.ndarray, np.ndarray]:
@@ -389,6 +427,11 @@ class Relighter(CostModel):
     def _autocast(self):
         """Autocast for bf16/fp16, nothing for fp32."""
         return autocast(self.dtype, self.device)
+
+
+def _mirrored(frames: np.ndarray) -> np.ndarray:
+    """Frames [T,H,W,3] flipped left↔right."""
+    return np.ascontiguousarray(frames[:, :, ::-1])
 
 
 def _tokenizer_in(tokenizer, dtype: torch.dtype):

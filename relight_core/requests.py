@@ -46,6 +46,7 @@ class RelightRequest:
     sampler: str | None = None            # None: the model's default
     seed: int = 0
     guidance: float = 0.0
+    ensemble: int | None = None           # samples averaged into the result; None: the model's default
     should_stop: Callable[[], bool] | None = None
 
 

@@ -71,3 +71,27 @@ def test_the_working_size_starts_at_the_models_and_says_where_results_come_back(
     assert "own size is 64 px" in dropdown.info and "input's own resolution" in dropdown.info
     _, raw = size_dropdown(False)
     assert "own size is 64 px" in raw.info and "resolution" not in raw.info
+
+
+def test_the_ensemble_slider_starts_at_the_models_and_counts_in_the_estimate(tmp_path):
+    import gradio as gr
+
+    from tests.factory import scene_image
+    from ui.layout import build_demo
+
+    studio = Studio(StudioConfig(model="tiny", envmaps_dir=ROOT / "envmaps", work_dir=tmp_path))
+    found = [block for block in build_demo(studio).blocks.values()
+             if isinstance(block, gr.Slider) and block.elem_id == "ensemble"]
+    assert len(found) == 1 and found[0].value == studio.relighter().spec.ensemble == 1
+    assert (found[0].minimum, found[0].maximum) == (1, 16)
+    image = str(scene_image(tmp_path / "scene.png"))
+
+    relighter = studio.relighter("tiny")
+    asked = []
+    estimate = relighter.estimate_seconds
+    relighter.estimate_seconds = lambda *args: asked.append(args[-1]) or 1000 * estimate(*args)
+    for ensemble in (None, 1, 16):
+        assert studio.estimate(image, "Relight", 0, 0, 64, 4, 1, "tiny", ensemble).startswith("About **")
+    assert asked == [None, 1, 16]
+    assert estimate(1, 64, 64, 4, 16) > 2 * estimate(1, 64, 64, 4, 1)
+    assert "from 1 to 16" in studio.estimate(image, "Relight", 0, 0, 64, 4, 1, "tiny", 0)

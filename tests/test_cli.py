@@ -153,3 +153,20 @@ def test_light_colour_temperature(files, tmp_path, capsys, monkeypatch):
     assert main([*args, "--out", str(tmp_path / "bad"), "--tint", "0.5"]) == 2
     err = capsys.readouterr().err
     assert "tint" in err and "Traceback" not in err
+
+
+def test_ensemble_averages_mirrored_samples_of_images_and_chunked_videos(files, tmp_path, capsys):
+    args = ["relight", "--probe", str(files["probe"]), *FAST]
+    for media in ("png", "mp4"):   # the tiny model cuts the clip into overlapping chunks
+        assert main([args[0], str(files[media]), *args[1:], "--out", str(tmp_path / media / "1")]) == 0
+        assert main([args[0], str(files[media]), *args[1:], "--ensemble", "3",
+                     "--out", str(tmp_path / media / "3")]) == 0
+    one, three = (np.asarray(Image.open(tmp_path / "png" / n / "relit.png"), np.float32) for n in ("1", "3"))
+    assert one.shape == three.shape and np.abs(one - three).mean() > 0.1
+    with av.open(str(tmp_path / "mp4" / "3" / "relit.mp4")) as video:
+        assert sum(1 for _ in video.decode(video=0)) == 12
+    with pytest.raises(SystemExit) as refused:
+        main([args[0], str(files["png"]), *args[1:], "--ensemble", "0", "--out", str(tmp_path / "bad")])
+    err = capsys.readouterr().err
+    assert refused.value.code == 2 and not (tmp_path / "bad").exists()
+    assert "ensemble 0 is out of range" in err and "Traceback" not in err

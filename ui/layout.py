@@ -8,6 +8,7 @@ from pathlib import Path
 
 import gradio as gr
 
+from relight_core.arguments import MAX_ENSEMBLE
 from relight_core.diffusion import SAMPLERS
 from relight_core.lighting import DEFAULT_ROTATION, MAX_PITCH_DEG, MAX_TINT, NEUTRAL_KELVIN
 from ui.inputs import VIDEO_SUFFIXES
@@ -138,6 +139,10 @@ def build_demo(studio: Studio, examples_dir: Path | None = None) -> gr.Blocks:
                     sampler = gr.Dropdown(list(SAMPLERS), value=spec.sampler, label="Sampler")
                     seed = gr.Number(0, precision=0, label="Seed (the same seed gives the same result)")
                     guidance = gr.Slider(0, 10, value=0, step=0.5, label="Guidance (0 = off, fastest)")
+                    ensemble = gr.Slider(1, MAX_ENSEMBLE, value=spec.ensemble, step=1, elem_id="ensemble",
+                                         label="Samples averaged into the result",
+                                         info="Each one adds a run; every second one sees the mirror image. "
+                                              "More: steadier and a little more accurate, slower.")
                     model = gr.Textbox(studio.config.model, label="Model: 'default', a preset, or a model folder",
                                        interactive=studio.config.model_choice)
 
@@ -183,8 +188,8 @@ def build_demo(studio: Studio, examples_dir: Path | None = None) -> gr.Blocks:
         api_inspect.click(studio.input_changed, input_file, input_shown, api_name="inspect_input")
         input_file.change(_show_video_row, input_file, [video_row, rotate_light], queue=False,
                           api_visibility="private")
-        estimate_inputs = [input_file, mode, frame_start, frame_end, size, steps, num_seeds, model]
-        for component in (input_file, mode, frame_start, frame_end, size, steps, num_seeds):
+        estimate_inputs = [input_file, mode, frame_start, frame_end, size, steps, num_seeds, model, ensemble]
+        for component in (input_file, mode, frame_start, frame_end, size, steps, num_seeds, ensemble):
             component.change(studio.estimate, estimate_inputs, estimate, trigger_mode="always_last",
                              api_visibility="private")
 
@@ -228,7 +233,7 @@ def build_demo(studio: Studio, examples_dir: Path | None = None) -> gr.Blocks:
             studio.run,
             [input_file, mode, probe_name, probe_file, rotation, exposure, rotate_light, sweep_start, sweep_end,
              num_seeds, frame_start, frame_end, size, steps, sampler, seed, guidance, model, temperature,
-             camera_pitch, camera_roll, tint],
+             camera_pitch, camera_roll, tint, ensemble],
             run_outputs, api_name="relight", show_progress="hidden", concurrency_id="model")
         # A mode the user picks starts a new job: results made in another mode would sit under the wrong
         # labels (examples set the mode too, with their own results, hence .input, not .change).

@@ -18,6 +18,7 @@ import gradio as gr
 import numpy as np
 
 from relight_core import lighting, media, outputs, preview
+from relight_core.arguments import MAX_ENSEMBLE
 from relight_core.colour import colour_science
 from relight_core.errors import InputError
 from relight_core.pipeline import ChunkDone, Finished, Progress, Relighter, RelightRequest
@@ -135,12 +136,15 @@ class Studio:
         return (*shown, field_note(info) if info else "", True)
 
     def estimate(self, path: str | None, mode: str, frame_start: float, frame_end: float, size: int,
-                 steps: float, num_seeds: float, model: str) -> str:
+                 steps: float, num_seeds: float, model: str, ensemble: float | None = None) -> str:
         """The time estimate for the current choice, shown before running."""
         if not path:
             return "Upload an image or a video to see the time estimate."
         try:
             steps, num_seeds = whole_number(steps, "number of steps"), whole_number(num_seeds, "number of seeds")
+            ensemble = None if ensemble is None else whole_number(ensemble, "number of samples averaged")
+            if ensemble is not None and not 1 <= ensemble <= MAX_ENSEMBLE:
+                raise InputError(f"The ensemble takes a whole number of samples from 1 to {MAX_ENSEMBLE}.")
         except InputError as exc:
             return f"No time estimate: {exc}"
         try:
@@ -151,7 +155,7 @@ class Studio:
             return "No time estimate: the file above cannot be used."
         height, width = frames.shape[1:3]
         runs = int(num_seeds) if mode == RANDOM_MODE else 1
-        seconds = runs * relighter.estimate_seconds(count, height, width, int(steps))
+        seconds = runs * relighter.estimate_seconds(count, height, width, int(steps), ensemble)
         what = f"{count} frames" if count > 1 else "the image"
         return f"About **{_duration(seconds)}** for {what} at {width}×{height}, {int(steps)} steps" + \
             (f", {runs} seeds." if runs > 1 else ".")
@@ -235,7 +239,8 @@ class Studio:
             rotation: float, exposure: float, rotate_light: bool, sweep_start: float, sweep_end: float,
             num_seeds: float, frame_start: float, frame_end: float, size: int, steps: float, sampler: str,
             seed: float, guidance: float, model: str, temperature: float, camera_pitch: float,
-            camera_roll: float, tint: float = 0.0, request: gr.Request = None) -> Iterator[tuple]:
+            camera_roll: float, tint: float = 0.0, ensemble: float | None = None,
+            request: gr.Request = None) -> Iterator[tuple]:
         """Relight the input; stream progress and previews, then the final files."""
         if not path:
             raise gr.Error("Upload an image or a video first.", print_exception=False)
@@ -248,12 +253,13 @@ class Studio:
                 ("num_seeds", num_seeds, "number of seeds"), ("frame_start", frame_start, "first frame"),
                 ("frame_end", frame_end, "last frame"), ("size", size, "working size"),
                 ("steps", steps, "number of steps"), ("seed", seed, "seed"))}
+            members = None if ensemble is None else whole_number(ensemble, "number of samples averaged")
             yield from self._run(job, stop, path, MODES.get(mode, "relight"), probe_name, probe_upload,
                                  float(rotation), 2.0 ** float(exposure), bool(rotate_light),
                                  (float(sweep_start), float(sweep_end)), whole["num_seeds"], whole["frame_start"],
                                  whole["frame_end"], whole["size"], whole["steps"], sampler, whole["seed"],
                                  float(guidance), model, float(temperature), (float(camera_pitch), float(camera_roll)),
-                                 float(tint))
+                                 float(tint), members)
         except InputError as exc:
             raise _fail(exc, path, probe_upload) from exc
         finally:
@@ -267,7 +273,8 @@ class Studio:
 
     def _run(self, job: Path, stop: threading.Event, path, mode, probe_name, probe_upload, rotation,
              intensity, rotate_light, sweep, num_seeds, frame_start, frame_end, size, steps, sampler, seed,
-             guidance, model, temperature=lighting.NEUTRAL_KELVIN, tilt=(0.0, 0.0), tint=0.0) -> Iterator[tuple]:
+             guidance, model, temperature=lighting.NEUTRAL_KELVIN, tilt=(0.0, 0.0), tint=0.0,
+             ensemble=None) -> Iterator[tuple]:
         started = time.monotonic()
         view = MODE_VIEWS[next(label for label, name in MODES.items() if name == mode)]
         relighter = self.relighter(model)
@@ -303,7 +310,7 @@ class Studio:
                 rotation=rotation, rotate_light=rotate_light, sweep=sweep, intensity=intensity,
                 temperature=temperature, tint=tint, camera_pitch=tilt[0], camera_roll=tilt[1],
                 albedo=frames if mode == "render" else None, steps=steps,
-                sampler=sampler, seed=run_seed, guidance=guidance, should_stop=stop.is_set)
+                sampler=sampler, seed=run_seed, guidance=guidance, ensemble=ensemble, should_stop=stop.is_set)
             result = None
             seed_started = time.monotonic()
             for event in relighter.run(request):

@@ -7,7 +7,7 @@ import shlex
 import sys
 from pathlib import Path
 
-from relight_core.arguments import PRECISIONS, int_at_least
+from relight_core.arguments import MAX_ENSEMBLE, PRECISIONS, int_at_least, int_range
 from relight_core.data.cli import positive_int
 
 
@@ -50,6 +50,8 @@ def add_evaluation_commands(subparsers) -> None:
     p.add_argument("--no-margin", action="store_true", help="skip the probe-following margin (one run per item)")
     p.add_argument("--no-grids", action="store_true", help="write no image grids")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--ensemble", type=int_range(1, MAX_ENSEMBLE, "ensemble"), default=None,
+                   help="samples averaged into each result (default: the model's)")
     p.add_argument("--device", default=None, help="cpu or cuda (default: cuda when available)")
     p.add_argument("--precision", choices=PRECISIONS, default=None, help="compute precision (default: the model's)")
     p.add_argument("--out", type=Path, default=None, help="output folder (default: evaluations/<model>-<split>)")
@@ -67,7 +69,8 @@ def _evaluate(args) -> int:
         steps_list=args.steps_list,
         size=args.size, eval_size=args.eval_size, margin=not args.no_margin, grids=not args.no_grids, device=args.device,
         precision=args.precision,
-        run=RunOptions(steps=args.steps, sampler=args.sampler, guidance=args.guidance, seed=args.seed),
+        run=RunOptions(steps=args.steps, sampler=args.sampler, guidance=args.guidance, seed=args.seed,
+                       ensemble=args.ensemble),
         command="python -m relight_core " + shlex.join(sys.argv[1:]) if sys.argv[1:2] == ["evaluate"] else "")
     results = run_evaluation(config)
     test = results["test"]

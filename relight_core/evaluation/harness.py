@@ -110,6 +110,7 @@ class RunOptions:
     sampler: str | None = None
     guidance: float = 0.0
     seed: int = 0
+    ensemble: int | None = None   # None: the model's default
 
 
 def model_size(relighter: Relighter, frames: np.ndarray) -> np.ndarray:
@@ -137,7 +138,7 @@ def relight(relighter: Relighter, frames: np.ndarray, probe: np.ndarray, options
     small = model_size(relighter, frames)
     result = relighter.relight(RelightRequest(
         small, mode="relight", camera_probe=probe, steps=options.steps, sampler=options.sampler,
-        guidance=options.guidance, seed=options.seed))
+        guidance=options.guidance, seed=options.seed, ensemble=options.ensemble))
     return (brought_back(frames, small, result.relit), brought_back(frames, small, result.albedo),
             time.perf_counter() - started)
 
@@ -231,7 +232,7 @@ def sigma_errors(relighter: Relighter, item: EvalItem, options: RunOptions, ligh
     with _registered(sweep) as name:
         relighter.relight(RelightRequest(
             item.input, mode="relight" if lighting else "random", camera_probe=item.probe if lighting else None,
-            steps=options.steps, sampler=name, seed=options.seed))
+            steps=options.steps, sampler=name, seed=options.seed, ensemble=1))  # the denoiser, one member
     return sweep.records
 
 
