@@ -80,7 +80,8 @@ def plan_job(job: MediaJob, relighter: Relighter, inputs: JobInputs) -> JobPlan:
                            members=job.ensemble or relighter.spec.ensemble)
     frames = media.resize_frames(source.frames, size, multiple=relighter.frame_multiple)
     base = dict(fps=source.fps, audio_path=source.audio_path, audio_start=source.audio_start, steps=job.steps,
-                sampler=job.sampler, guidance=job.guidance, ensemble=job.ensemble, mode=job.mode, probe=inputs.probe, intensity=job.intensity)
+                sampler=job.sampler, guidance=job.guidance, ensemble=job.ensemble, mode=job.mode, probe=inputs.probe,
+                intensity=job.intensity)
     if job.rotation is not None:
         base["rotation"] = job.rotation
     if job.rotate_light:
