@@ -10,6 +10,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from relight_core.arguments import MAX_ENSEMBLE
 from relight_core.chunking import plan_chunks
 from relight_core.devices import free_memory, gb
 from relight_core.dit import NUM_CLIPS
@@ -23,11 +24,21 @@ class CostModel:
     _flops_per_second: float | None = None  # measured on the last run
     _overhead_per_pixel: float | None = None  # seconds per frame pixel outside the network, measured
 
+    def members(self, ensemble) -> int:
+        """The samples a request averages (`RelightRequest.ensemble`; None: the model's `ensemble`);
+        anything but a whole number from 1 to MAX_ENSEMBLE is one InputError sentence."""
+        if ensemble is None:
+            return self.spec.ensemble
+        if isinstance(ensemble, bool) or not isinstance(ensemble, (int, np.integer)) \
+                or not 1 <= ensemble <= MAX_ENSEMBLE:
+            raise InputError(f"The ensemble takes a whole number of samples from 1 to {MAX_ENSEMBLE}, not {ensemble}.")
+        return int(ensemble)
+
     def estimate_seconds(self, num_frames: int, height: int, width: int, steps: int | None = None,
                          ensemble: int | None = None) -> float:
         """Rough wall time of a request, from a measured (or assumed) cost per token."""
         steps = steps or self.spec.steps
-        members = ensemble or self.spec.ensemble
+        members = self.members(ensemble)
         chunks = plan_chunks(num_frames, self.spec.chunk_frames, self.spec.overlap_frames)
         t = self.tokenizer.latent_frames(min(num_frames, self.spec.chunk_frames)) if num_frames > 1 else 1
         tokens = NUM_CLIPS * t * (height // self.frame_multiple) * (width // self.frame_multiple)

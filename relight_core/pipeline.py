@@ -30,7 +30,6 @@ import numpy as np
 import torch
 
 from relight_core import lighting
-from relight_core.arguments import MAX_ENSEMBLE
 from relight_core.checkpoint import ModelSpec, load_model, resolve_model
 from relight_core.chunking import crossfade_weights, pad_to_valid, plan_chunks, stitch
 from relight_core.costs import CostModel
@@ -106,7 +105,7 @@ class Relighter(CostModel):
         chunks = plan_chunks(num_frames, self.spec.chunk_frames, self.spec.overlap_frames)
         rotations = lighting.frame_rotations(num_frames, request.rotation, request.rotate_light, request.sweep)
         probe = self._prepared_probe(request)
-        members = request.ensemble or self.spec.ensemble
+        members = self.members(request.ensemble)
         sigmas = get_sigmas_karras(steps, sigma_min=0.002, sigma_max=80.0).to(self.device)
         evals_per_chunk = steps + 1 if request.guidance == 0 else 2 * (steps + 1)
 
@@ -225,10 +224,6 @@ class Relighter(CostModel):
             raise InputError(f"Steps must be between 1 and 1000, not {request.steps}.")
         if not math.isfinite(request.guidance) or request.guidance < 0:
             raise InputError(f"Guidance must be a finite number ≥ 0, not {request.guidance}.")
-        if request.ensemble is not None and (isinstance(request.ensemble, bool) or not isinstance(
-                request.ensemble, (int, np.integer)) or not 1 <= request.ensemble <= MAX_ENSEMBLE):
-            raise InputError(f"The ensemble takes a whole number of samples from 1 to {MAX_ENSEMBLE}, "
-                             f"not {request.ensemble}.")
         if not math.isfinite(request.intensity) or request.intensity <= 0:
             raise InputError(f"Intensity must be a positive number, not {request.intensity}.")
         lighting.check_temperature(request.temperature)
@@ -238,7 +233,7 @@ class Relighter(CostModel):
                 or not 0 <= int(request.seed) <= MAX_SEED:
             raise InputError(f"The seed {request.seed} is out of range; use a whole number from 0 to {MAX_SEED}.")
         self.check_memory(frames.shape[0], height, width, guidance=request.guidance > 0,
-                          members=request.ensemble or self.spec.ensemble)
+                          members=self.members(request.ensemble))
         return np.clip(frames, 0.0, 1.0)
 
     def _prepared_probe(self, request: RelightRequest) -> torch.Tensor | None:

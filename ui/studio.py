@@ -18,7 +18,6 @@ import gradio as gr
 import numpy as np
 
 from relight_core import lighting, media, outputs, preview
-from relight_core.arguments import MAX_ENSEMBLE
 from relight_core.colour import colour_science
 from relight_core.errors import InputError
 from relight_core.pipeline import ChunkDone, Finished, Progress, Relighter, RelightRequest
@@ -143,8 +142,6 @@ class Studio:
         try:
             steps, num_seeds = whole_number(steps, "number of steps"), whole_number(num_seeds, "number of seeds")
             ensemble = None if ensemble is None else whole_number(ensemble, "number of samples averaged")
-            if ensemble is not None and not 1 <= ensemble <= MAX_ENSEMBLE:
-                raise InputError(f"The ensemble takes a whole number of samples from 1 to {MAX_ENSEMBLE}.")
         except InputError as exc:
             return f"No time estimate: {exc}"
         try:
@@ -155,7 +152,10 @@ class Studio:
             return "No time estimate: the file above cannot be used."
         height, width = frames.shape[1:3]
         runs = int(num_seeds) if mode == RANDOM_MODE else 1
-        seconds = runs * relighter.estimate_seconds(count, height, width, int(steps), ensemble)
+        try:
+            seconds = runs * relighter.estimate_seconds(count, height, width, int(steps), ensemble)
+        except InputError as exc:  # an ensemble out of range
+            return f"No time estimate: {exc}"
         what = f"{count} frames" if count > 1 else "the image"
         return f"About **{_duration(seconds)}** for {what} at {width}×{height}, {int(steps)} steps" + \
             (f", {runs} seeds." if runs > 1 else ".")

@@ -34,7 +34,7 @@ from pathlib import Path
 
 import numpy as np
 
-GRID = (0.0, 0.25, 0.375, 0.5, 0.625, 0.75, 1.0, 1.25)  # past 1: an ensemble's mean offset is shrunk
+GRID = (0.0, 0.25, 0.375, 0.5, 0.625, 0.75, 1.0, 1.25)  # past 1: a best gain of 1 is then a peak, not the grid's edge
 RADII = (0, 2, 4, 8, 16)  # offset filter radii (px at the model's size); 0 = the model's output as it is
 
 
