@@ -18,6 +18,7 @@ from relight_core.arguments import (MAX_ENSEMBLE, MAX_INTENSITY, MAX_ROTATION_DE
 from relight_core.data.cli import add_data_commands, positive_int
 from relight_core.errors import InputError
 from relight_core.paths import check_path
+from relight_core.streaming import stop_all
 from relight_core.evaluation.cli import add_evaluation_commands
 from relight_core.training.cli import add_training_commands
 
@@ -171,7 +172,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     with terminate_as_interrupt():  # SIGTERM (kill, timeout) cleans up like Ctrl+C
-        return _main(argv)
+        try:
+            return _main(argv)
+        finally:
+            stop_all()  # no sampler thread may still be inside torch when the interpreter exits
 
 
 def _main(argv: list[str] | None) -> int:

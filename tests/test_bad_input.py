@@ -244,3 +244,47 @@ def test_sigterm_leaves_no_partial_folder(files, tmp_path):
     assert code == 128 + signal.SIGTERM, err
     assert "stopped." in err and "Traceback" not in err
     assert list(out.iterdir()) == []
+
+
+# A SIGTERM raised while Thread.start() waits for the sampler thread (or while the caller's loop
+# body runs) left a daemon worker inside torch at exit: "terminate called without an active
+# exception", exit -6 (seen once in CI). The signal is delivered at exactly those points here.
+_SIGNAL_AT = """
+import os, signal, sys, threading
+import relight_core.streaming as streaming
+from relight_core.cli import main
+where = sys.argv[1]
+if where == "start":
+    start = threading.Thread.start
+    def start_then_signal(self):
+        start(self)
+        if self.name == "relight-sampler":
+            os.kill(os.getpid(), signal.SIGTERM)  # raised here, as start() returns
+    threading.Thread.start = start_then_signal
+else:
+    import tqdm
+    update, calls = tqdm.tqdm.update, []
+    def update_then_signal(self, n=1):
+        calls.append(n)
+        if len(calls) == 2:
+            os.kill(os.getpid(), signal.SIGTERM)  # raised in the CLI's loop body, the generator suspended
+        return update(self, n)
+    tqdm.tqdm.update = update_then_signal
+code = main(sys.argv[2:])
+assert not [t for t in threading.enumerate() if t.name == "relight-sampler"], "a sampler thread outlived main()"
+sys.exit(code)
+"""
+
+
+@pytest.mark.parametrize("where", ["start", "loop"])
+def test_sigterm_as_the_sampler_thread_starts_or_between_steps_exits_cleanly(files, tmp_path, where):
+    import subprocess
+    import sys
+
+    out = tmp_path / "out"
+    proc = subprocess.run([sys.executable, "-c", _SIGNAL_AT, where, "relight", str(files["png"]), "--probe",
+                           str(files["probe"]), "--out", str(out), "--model", "tiny", "--steps", "1000",
+                           "--size", "64"], cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 128 + signal.SIGTERM, proc.stderr
+    assert "stopped." in proc.stderr and "terminate called" not in proc.stderr and "Traceback" not in proc.stderr
+    assert list(out.iterdir()) == []

@@ -13,6 +13,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from relight_core.errors import InputError
+from relight_core.streaming import stop_all
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
 
@@ -172,6 +173,7 @@ def _reason(exc: OSError) -> str:
 def shutdown(demo) -> None:
     """Stop serving and remove the studio's temp folder (uploads, results, work files)."""
     demo.close(verbose=False)
+    stop_all()  # a job still sampling stops at its next step; no sampler thread outlives the server
     root = getattr(demo, "studio_root", None)
     if root is not None:
         shutil.rmtree(root, ignore_errors=True)
