@@ -10,6 +10,8 @@ from __future__ import annotations
 import os
 import re
 import signal
+import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -251,7 +253,6 @@ def test_sigterm_leaves_no_partial_folder(files, tmp_path):
 # exception", exit -6 (seen once in CI). The signal is delivered at exactly those points here.
 _SIGNAL_AT = """
 import os, signal, sys, threading
-import relight_core.streaming as streaming
 from relight_core.cli import main
 where = sys.argv[1]
 if where == "start":
@@ -278,9 +279,6 @@ sys.exit(code)
 
 @pytest.mark.parametrize("where", ["start", "loop"])
 def test_sigterm_as_the_sampler_thread_starts_or_between_steps_exits_cleanly(files, tmp_path, where):
-    import subprocess
-    import sys
-
     out = tmp_path / "out"
     proc = subprocess.run([sys.executable, "-c", _SIGNAL_AT, where, "relight", str(files["png"]), "--probe",
                            str(files["probe"]), "--out", str(out), "--model", "tiny", "--steps", "1000",
