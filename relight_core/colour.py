@@ -3,7 +3,8 @@
 * `linear_to_srgb` / `srgb_to_linear`: the piecewise IEC 61966-2-1 curve (`12.92·x` below
   0.0031308, else `1.055·x^(1/2.4) − 0.055`; the released code's `rgb2srgb`), unclipped. Arrays go
   through colour-science's `eotf_inverse_sRGB` / `eotf_sRGB`; torch tensors, which the lighting
-  encodings keep on the model's device, are encoded here by the same formula (a test pins the two).
+  encodings and the trainer's light mixing keep on the model's device, go through the same formula
+  here (tests pin the two).
 * `temperature_xy`: CIE 1931 xy of a light at a correlated colour temperature (kelvin) and a tint
   Δuv off the Planckian locus (Ohno 2013: the exact black body from the CIE 1931 2° observer).
 * `xy_to_linear_srgb`: that chromaticity as linear sRGB / Rec.709 at luminance Y = 1;
@@ -48,8 +49,10 @@ def linear_to_srgb(x):
     return _float_like(x, colour_science().models.eotf_inverse_sRGB(x))
 
 
-def srgb_to_linear(x) -> np.ndarray:
-    """Inverse of `linear_to_srgb` for arrays: display values back to linear light."""
+def srgb_to_linear(x):
+    """Inverse of `linear_to_srgb`: display values back to linear light (an array or a tensor, as in)."""
+    if isinstance(x, torch.Tensor):
+        return torch.where(x <= 0.04045, x / 12.92, ((x.clamp(min=0.04045) + 0.055) / 1.055) ** 2.4)
     return _float_like(x, colour_science().models.eotf_sRGB(x))
 
 

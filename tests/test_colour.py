@@ -17,6 +17,10 @@ def test_the_srgb_curve_is_colour_sciences_for_arrays_and_tensors():
     assert isinstance(encoded, torch.Tensor) and encoded.dtype == torch.float32
     np.testing.assert_allclose(encoded.numpy(), expected, rtol=0, atol=1e-6)
     np.testing.assert_allclose(colour.srgb_to_linear(expected), x, rtol=0, atol=1e-12)
+    # And back (the trainer mixes lights in linear light on its device): a tensor in, a tensor out.
+    decoded = colour.srgb_to_linear(torch.from_numpy(expected).float())
+    assert isinstance(decoded, torch.Tensor) and decoded.dtype == torch.float32
+    np.testing.assert_allclose(decoded.numpy(), science.models.eotf_sRGB(expected), rtol=2e-6, atol=1e-6)
     # IEC 61966-2-1 values: the knee, and 18 % grey.
     assert colour.linear_to_srgb(np.float64(0.0031308)) == pytest.approx(0.04045, abs=1e-6)
     assert colour.linear_to_srgb(np.float64(0.18)) == pytest.approx(0.4613561, abs=1e-7)

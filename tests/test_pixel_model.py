@@ -16,7 +16,7 @@ from relight_core.errors import InputError
 from relight_core.pipeline import Relighter, RelightRequest
 from relight_core.tokenizer import PixelTokenizer, build_tokenizer
 from relight_core.training.recipe import Recipe
-from relight_core.training.fast import FastConfig, make_batch, merge_shards, train
+from relight_core.training.fast import FastConfig, light_mix, make_batch, merge_shards, train
 from relight_core.training.pack import load_pack, write_pack
 from relight_core.upsample import smooth_offset
 
@@ -114,6 +114,46 @@ def test_batches_flip_image_and_probe_together(tmp_path):
     # The flipped probe: radiance mirrored, directions unchanged.
     dir_plain, dir_flipped = plain["lighting"][0, 2 * 193:3 * 193 - 1], flipped["lighting"][0, 2 * 193:3 * 193 - 1]
     assert torch.equal(dir_plain, dir_flipped)
+
+
+def test_batches_relight_between_mixtures_of_the_two_probes_in_linear_light(tmp_path):
+    from relight_core.colour import colour_science
+
+    write_pack(_write_dataset(tmp_path / "data"), "train", tmp_path / "p.npz", lighting_size=8)
+    pack = load_pack(tmp_path / "p.npz")
+    tok = PixelTokenizer(8)
+    idx, target, no_flip = torch.tensor([0, 2]), torch.tensor([1, 0]), torch.tensor([False, False])
+    plain = make_batch(pack, tok, idx, target, no_flip)
+    unmixed = make_batch(pack, tok, idx, target, no_flip, torch.tensor([[1.0, 0.0], [1.0, 0.0]]))
+    for key in ("input", "relit", "albedo", "lighting"):
+        assert torch.allclose(unmixed[key], plain[key], atol=1e-5), key
+    w, v = 0.7, 0.2
+    mixed = make_batch(pack, tok, idx, target, no_flip, torch.tensor([[w, v], [1.0, 0.0]]))
+    # Scene 0, target light 1: the relit frame is sRGB(w·lin(rgb1) + (1−w)·lin(rgb0)), the input
+    # sRGB(v·lin(rgb1) + (1−v)·lin(rgb0)), by colour-science's curve; the albedo does not change.
+    science = colour_science().models
+    on, off = (science.eotf_sRGB(pack["rgb"][0, k].double().numpy() / 255) for k in (1, 0))
+    relit = science.eotf_inverse_sRGB(w * on + (1 - w) * off) * 2 - 1
+    source = science.eotf_inverse_sRGB(v * on + (1 - v) * off) * 2 - 1
+    np.testing.assert_allclose(tok.decode(mixed["relit"])[0, :, 0].numpy(), relit, atol=2e-5)
+    np.testing.assert_allclose(tok.decode(mixed["input"])[0, :, 0].numpy(), source, atol=2e-5)
+    assert not np.allclose(relit, tok.decode(plain["relit"])[0, :, 0].numpy(), atol=1e-2)
+    assert torch.equal(mixed["albedo"], plain["albedo"]) and torch.allclose(mixed["relit"][1], plain["relit"][1], atol=1e-5)
+    # The lighting is the same mixture of the two linear probes, then encoded.
+    probe = w * pack["env"][0, 1] + (1 - w) * pack["env"][0, 0]
+    ldr = lighting.encode_lighting(lighting.upsample_panorama(probe[None], 32, 32))["env_ldr"]
+    assert torch.allclose(tok.decode(mixed["lighting"][0:1, :192])[0, :, 0], ldr[0].permute(2, 0, 1), atol=1e-5)
+
+
+def test_light_mixes_keep_each_item_mostly_one_probe():
+    generator = torch.Generator().manual_seed(0)
+    assert torch.equal(light_mix(64, 0.0, generator, torch.device("cpu")), torch.tensor([[1.0, 0.0]]).expand(64, 2))
+    mixes = light_mix(4000, 0.5, generator, torch.device("cpu"))
+    mixed = (mixes != torch.tensor([1.0, 0.0])).any(1)
+    assert 0.45 < mixed.float().mean() < 0.55
+    target, source = mixes[mixed].unbind(1)
+    assert target.min() >= 0.5 and target.max() <= 1 and source.min() >= 0 and source.max() <= 0.5
+    assert target.std() > 0.1 and source.std() > 0.1
 
 
 def test_fast_training_exports_a_model_the_relighter_runs(tmp_path):

@@ -15,7 +15,8 @@ Writes `<out>/model/` (config.json + dit.safetensors, the EMA in bf16; also as �
 PSNR on train and test items (`<out>/samples.json`). `--init DIR` starts from a model folder's
 DiT (to continue from the shipped weights; `--zero-head` zeroes its output layer). `--residual`
 trains relit/albedo as offsets from the input (`ModelSpec.residual`), `--p-sigma-max` trains a
-share of samples at σ = 80 (the one-step sampler's call). `<out>/checkpoint.pt` (every
+share of samples at σ = 80 (the one-step sampler's call), `--mix-lights` relights a share of items
+between mixtures of their scene's two probes (`make_batch`). `<out>/checkpoint.pt` (every
 `--checkpoint-every-minutes` and at the end) makes a run started again on the same `--out` resume
 exactly where it stopped.
 """
@@ -37,6 +38,7 @@ from safetensors.torch import load_file, save_file
 
 from relight_core import lighting
 from relight_core.checkpoint import CONFIG_FILE, DIT_FILE, ModelSpec
+from relight_core.colour import linear_to_srgb, srgb_to_linear
 from relight_core.diffusion import ConditionedDenoiser, EDMPrecond, get_sigmas_karras, sample_res2ab
 from relight_core.dit import DiTConfig, JointDiT, pack_lighting
 from relight_core.precision import resolve_precision
@@ -78,6 +80,7 @@ class FastConfig:
     export_steps: int = 1                # the exported model's default sampling steps
     checkpoint_every_minutes: float = 5.0  # <out>/checkpoint.pt (weights, EMA, optimizer, RNG): exact resume
     train_size: int | None = None        # shrink the packs' images to this side (px) first; the model's size
+    mix_lights: float = 0.0              # share of items relit between mixtures of their two probes (make_batch)
     recipe: Recipe = field(default_factory=Recipe)
 
 
@@ -119,18 +122,33 @@ def shrink_pack(pack: dict, size: int, multiple: int = 8) -> dict:
 
 
 def make_batch(pack: dict, tokenizer: PixelTokenizer, indices: torch.Tensor, target: torch.Tensor,
-               flip: torch.Tensor) -> dict[str, torch.Tensor]:
+               flip: torch.Tensor, mix: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
     """Latents of items: input (the other light), relit (light `target`), albedo, lighting [B,579,1,h,w].
 
     `flip` mirrors image and probe left↔right (u → 1−u in the camera panorama: the mirrored scene
     under the mirrored light), env_dir staying what it is for every pixel.
+
+    `mix` [B,2] (optional) relights with mixtures of the scene's two probes: light transport is linear
+    in the light, so the scene under w·probe[t] + (1−w)·probe[1−t] is w·image[t] + (1−w)·image[1−t]
+    in linear light (the two renders share their sampler seed). Column 0 is the target's weight w on
+    light `target`, column 1 the input's weight on it; (1, 0) is the unmixed item. The images are
+    mixed after undoing the sRGB curve and encoded again; the probes on the lighting grid are linear.
     """
     arange = torch.arange(len(indices), device=indices.device)
     rgb = pack["rgb"][indices]                                                  # (B, 2, 3, H, W) uint8
-    relit = rgb[arange, target].float() / 127.5 - 1
-    source = rgb[arange, 1 - target].float() / 127.5 - 1
-    albedo = pack["albedo"][indices].float() / 127.5 - 1
     env = pack["env"][indices, target]                                           # (B, s, s, 3)
+    if mix is None:
+        relit = rgb[arange, target].float() / 127.5 - 1
+        source = rgb[arange, 1 - target].float() / 127.5 - 1
+    else:
+        linear = srgb_to_linear(rgb.float() / 255)
+        on, off = linear[arange, target], linear[arange, 1 - target]
+        w = mix.to(linear.dtype).view(-1, 2, 1, 1, 1)
+        relit = linear_to_srgb(w[:, 0] * on + (1 - w[:, 0]) * off) * 2 - 1
+        source = linear_to_srgb(w[:, 1] * on + (1 - w[:, 1]) * off) * 2 - 1
+        w_env = mix[:, 0].to(env.dtype).view(-1, 1, 1, 1)
+        env = w_env * env + (1 - w_env) * pack["env"][indices, 1 - target]
+    albedo = pack["albedo"][indices].float() / 127.5 - 1
     f = flip.view(-1, 1, 1, 1)
     relit, source, albedo = (torch.where(f, x.flip(-1), x) for x in (relit, source, albedo))
     env = torch.where(f, env.flip(2), env)
@@ -140,6 +158,17 @@ def make_batch(pack: dict, tokenizer: PixelTokenizer, indices: torch.Tensor, tar
              for k in ("env_ldr", "env_log", "env_dir")]
     return {"input": tokenizer.encode(_video(source)), "relit": tokenizer.encode(_video(relit)),
             "albedo": tokenizer.encode(_video(albedo)), "lighting": pack_lighting(*light)}
+
+
+def light_mix(batch: int, share: float, generator: torch.Generator, device: torch.device) -> torch.Tensor:
+    """`make_batch`'s mix [B,2]: a `share` of items get the target's weight on its light drawn from
+    U(0.5, 1) and the input's from U(0, 0.5) — each still mostly one probe, so every item remains a
+    relighting from one light towards the other, under the continuum of lights between the two;
+    the rest stay unmixed (1, 0), the task the model is used for."""
+    draw = torch.rand(batch, 3, generator=generator, device=device)
+    mixed = draw[:, :1] < share
+    weights = torch.stack([0.5 + 0.5 * draw[:, 1], 0.5 * draw[:, 2]], dim=1)
+    return torch.where(mixed, weights, torch.tensor([1.0, 0.0], device=device))
 
 
 @torch.no_grad()
@@ -296,6 +325,8 @@ def train(config: FastConfig) -> dict:
     n = len(pack["rgb"])
     last_export = time.time()
     notes = {"recipe": asdict(config.recipe), "batch": config.batch, "lr": config.lr}
+    if config.mix_lights > 0:
+        notes["mix_lights"] = config.mix_lights
     while True:
         elapsed = time.time() - train_started
         if elapsed > budget:
@@ -308,7 +339,10 @@ def train(config: FastConfig) -> dict:
         indices = torch.randint(0, n, (config.batch,), generator=generator, device=device)
         target = torch.randint(0, 2, (config.batch,), generator=generator, device=device)
         flip = torch.rand(config.batch, generator=generator, device=device) < 0.5
-        batch = make_batch(pack, tokenizer, indices, target, flip)
+        mix = None
+        if config.mix_lights > 0:  # no extra draws without it: runs before it resume exactly
+            mix = light_mix(config.batch, config.mix_lights, generator, device)
+        batch = make_batch(pack, tokenizer, indices, target, flip, mix)
         example = make_example(batch["input"], batch["relit"], batch["albedo"], batch["lighting"],
                                config.recipe, generator)
         try:
@@ -375,6 +409,8 @@ def main(argv: list[str] | None = None) -> None:
                         help="train (and export the model) at this image size, the packs shrunk to it (px)")
     parser.add_argument("--p-sigma-max", type=float, default=0.0,
                         help="share of samples trained at σ_max, the one-step sampler's only call")
+    parser.add_argument("--mix-lights", type=float, default=0.0,
+                        help="share of items relit between mixtures of their scene's two probes (linear light)")
     defaults = FastConfig(pack=Path(), out=Path())
     for name in ("minutes", "device", "batch", "lr", "warmup", "ema_decay", "width", "depth", "num_heads",
                  "seed", "log_every", "eval_items", "eval_steps", "export_every_minutes", "export_steps",
@@ -386,6 +422,8 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--albedo-weight", type=float, default=defaults.recipe.clip_weights[2],
                         help="loss weight of the albedo clip (the paper's 0.1)")
     args = vars(parser.parse_args(argv))
+    if not 0 <= args["mix_lights"] <= 1:
+        parser.error(f"--mix-lights is a share of items, from 0 to 1; got {args['mix_lights']}")
     recipe = replace(defaults.recipe, p_mean=args.pop("p_mean"), p_std=args.pop("p_std"),
                      clip_weights=(0.0, 1.0, args.pop("albedo_weight")), residual=args.pop("residual"),
                      p_sigma_max=args.pop("p_sigma_max"))
