@@ -10,6 +10,7 @@ import torch
 
 from relight_core import lighting
 from relight_core.checkpoint import DIT_FILE, TOKENIZER_FILE, ModelSpec, load_model
+from relight_core.colour import colour_science
 from relight_core.data.dataset import write_frame, write_manifest, write_meta
 from relight_core.dit import CHANNELS, DiTConfig, JointDiT, assemble_inputs, channel_layout, pack_lighting
 from relight_core.errors import InputError
@@ -117,8 +118,6 @@ def test_batches_flip_image_and_probe_together(tmp_path):
 
 
 def test_batches_relight_between_mixtures_of_the_two_probes_in_linear_light(tmp_path):
-    from relight_core.colour import colour_science
-
     write_pack(_write_dataset(tmp_path / "data"), "train", tmp_path / "p.npz", lighting_size=8)
     pack = load_pack(tmp_path / "p.npz")
     tok = PixelTokenizer(8)
