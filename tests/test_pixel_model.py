@@ -17,7 +17,7 @@ from relight_core.errors import InputError
 from relight_core.pipeline import Relighter, RelightRequest
 from relight_core.tokenizer import PixelTokenizer, build_tokenizer
 from relight_core.training.recipe import Recipe
-from relight_core.training.fast import FastConfig, light_mix, make_batch, merge_shards, train
+from relight_core.training.fast import FastConfig, light_mix, main, make_batch, merge_shards, train
 from relight_core.training.pack import load_pack, write_pack
 from relight_core.upsample import smooth_offset
 
@@ -153,6 +153,14 @@ def test_light_mixes_keep_each_item_mostly_one_probe():
     target, source = mixes[mixed].unbind(1)
     assert target.min() >= 0.5 and target.max() <= 1 and source.min() >= 0 and source.max() <= 0.5
     assert target.std() > 0.1 and source.std() > 0.1
+
+
+def test_a_mix_share_outside_0_to_1_is_refused_before_anything_loads(tmp_path, capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        main(["--pack", str(tmp_path / "missing.npz"), "--out", str(tmp_path / "run"), "--mix-lights", "1.5"])
+    assert exit_info.value.code == 2
+    assert "--mix-lights is a share of items, from 0 to 1; got 1.5" in capsys.readouterr().err
+    assert not (tmp_path / "run").exists()
 
 
 def test_fast_training_exports_a_model_the_relighter_runs(tmp_path):
