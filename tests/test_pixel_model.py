@@ -18,7 +18,7 @@ from relight_core.pipeline import Relighter, RelightRequest
 from relight_core.tokenizer import PixelTokenizer, build_tokenizer
 from relight_core.training.recipe import Recipe
 from relight_core.training.fast import FastConfig, light_mix, main, make_batch, merge_shards, train
-from relight_core.training.pack import load_pack, write_pack
+from relight_core.training.pack import load_pack, load_packs, write_pack
 from relight_core.upsample import smooth_offset
 
 
@@ -69,8 +69,8 @@ def test_lowpass_panorama_keeps_energy_and_is_identity_at_full_size():
     assert lighting.lowpass_panorama(pan, 64) is pan and lighting.lowpass_panorama(pan, None) is pan
 
 
-def _write_dataset(root, scenes=3, size=32):
-    rng = np.random.default_rng(0)
+def _write_dataset(root, scenes=3, size=32, seed=0):
+    rng = np.random.default_rng(seed)
     split = root / "train"
     for i in range(scenes):
         sample = split / f"scene_{i:06d}"
@@ -97,6 +97,30 @@ def test_pack_round_trip(tmp_path):
     assert torch.equal(pack["mask"][1], torch.from_numpy(read_image(scene / "mask" / "0000.png") > 0.5))
     env = lighting.downsample_panorama(torch.from_numpy(read_exr(scene / "env0" / "0000.exr"))[None], 8)[0]
     assert torch.allclose(pack["env"][1, 0], env, rtol=2e-3, atol=1e-3)     # stored as fp16
+
+
+def test_several_packs_train_as_one_and_must_match(tmp_path, capsys):
+    write_pack(_write_dataset(tmp_path / "a", scenes=3), "train", tmp_path / "a.npz", lighting_size=8)
+    write_pack(_write_dataset(tmp_path / "b", scenes=2, seed=1), "train", tmp_path / "b.npz", lighting_size=8)
+    a, b = load_pack(tmp_path / "a.npz"), load_pack(tmp_path / "b.npz")
+    both = load_packs([tmp_path / "a.npz", tmp_path / "b.npz"])
+    assert both["rgb"].shape == (5, 2, 3, 32, 32) and both["lighting_size"] == 8 and len(both["names"]) == 5
+    for key in ("rgb", "albedo", "mask", "env"):
+        assert torch.equal(both[key][:3], a[key]) and torch.equal(both[key][3:], b[key]), key
+    assert not torch.equal(both["rgb"][0], both["rgb"][3])                  # the second pack's own scenes
+    single = load_packs(tmp_path / "a.npz")
+    assert all(torch.equal(single[k], a[k]) for k in ("rgb", "albedo", "mask", "env"))
+    write_pack(_write_dataset(tmp_path / "c", scenes=2, size=16), "train", tmp_path / "c.npz", lighting_size=8)
+    with pytest.raises(ValueError, match="c.npz holds \\(16, 16\\) px images"):
+        load_packs([tmp_path / "a.npz", tmp_path / "c.npz"])
+    # The trainer's --pack takes several: a run on both sees all five scenes.
+    from relight_core.training.fast import main
+    main(["--pack", str(tmp_path / "a.npz"), str(tmp_path / "b.npz"), "--out", str(tmp_path / "run"),
+          "--minutes", "0.01", "--device", "cpu", "--batch", "2", "--width", "32", "--depth", "1",
+          "--num-heads", "2", "--eval-items", "1", "--eval-steps", "1", "--warmup", "1"])
+    start = json.loads((tmp_path / "run" / "log.jsonl").read_text().splitlines()[0])
+    assert start["event"] == "start" and start["items"] == 5
+    capsys.readouterr()
 
 
 def test_batches_flip_image_and_probe_together(tmp_path):

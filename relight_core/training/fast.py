@@ -18,7 +18,8 @@ trains relit/albedo as offsets from the input (`ModelSpec.residual`), `--p-sigma
 share of samples at σ = 80 (the one-step sampler's call), `--mix-lights` relights a share of items
 between mixtures of their scene's two probes (`make_batch`). `<out>/checkpoint.pt` (every
 `--checkpoint-every-minutes` and at the end) makes a run started again on the same `--out` resume
-exactly where it stopped.
+exactly where it stopped. `--pack` takes several packs (e.g. scenes of different dataset seeds),
+trained as one (`pack.load_packs`).
 """
 
 from __future__ import annotations
@@ -44,7 +45,7 @@ from relight_core.dit import DiTConfig, JointDiT, pack_lighting
 from relight_core.precision import resolve_precision
 from relight_core.tokenizer import PixelTokenizer
 from relight_core.training.loop import EMA, make_optimizer
-from relight_core.training.pack import load_pack
+from relight_core.training.pack import load_pack, load_packs
 from relight_core.training.recipe import Recipe, denoising_loss, make_example, network
 
 SHARD_BYTES = 15_000_000
@@ -52,7 +53,7 @@ SHARD_BYTES = 15_000_000
 
 @dataclass(frozen=True)
 class FastConfig:
-    pack: Path
+    pack: Path | tuple[Path, ...]         # one pack, or several trained as one (load_packs)
     out: Path
     test_pack: Path | None = None
     minutes: float = 7.0
@@ -266,7 +267,7 @@ def train(config: FastConfig) -> dict:
     if device.type == "cuda":
         torch.backends.cuda.matmul.allow_tf32 = True
         torch.backends.cudnn.allow_tf32 = True
-    pack = load_pack(config.pack, device)
+    pack = load_packs(config.pack, device)
     test = load_pack(config.test_pack, device) if config.test_pack else None
     if config.train_size is not None:
         pack = shrink_pack(pack, config.train_size, config.patch)
@@ -396,7 +397,8 @@ def train(config: FastConfig) -> dict:
 
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--pack", type=Path, required=True)
+    parser.add_argument("--pack", type=Path, nargs="+", required=True,
+                        help="one pack, or several (e.g. different dataset seeds) trained as one")
     parser.add_argument("--test-pack", type=Path)
     parser.add_argument("--out", type=Path, required=True)
     parser.add_argument("--init", type=Path)
@@ -422,6 +424,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--albedo-weight", type=float, default=defaults.recipe.clip_weights[2],
                         help="loss weight of the albedo clip (the paper's 0.1)")
     args = vars(parser.parse_args(argv))
+    args["pack"] = args["pack"][0] if len(args["pack"]) == 1 else tuple(args["pack"])
     if not 0 <= args["mix_lights"] <= 1:
         parser.error(f"--mix-lights is a share of items, from 0 to 1; got {args['mix_lights']}")
     recipe = replace(defaults.recipe, p_mean=args.pop("p_mean"), p_std=args.pop("p_std"),

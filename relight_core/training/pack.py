@@ -91,6 +91,26 @@ def load_pack(path: Path, device: str | torch.device = "cpu") -> dict[str, torch
     return {k: (v.to(device) if isinstance(v, torch.Tensor) else v) for k, v in out.items()}
 
 
+def load_packs(paths: Path | list[Path] | tuple[Path, ...], device: str | torch.device = "cpu") -> dict:
+    """Several packs (e.g. scenes rendered with different dataset seeds) as one: their items in order.
+    They must share image size and lighting grid."""
+    paths = [Path(paths)] if isinstance(paths, (str, Path)) else [Path(p) for p in paths]
+    if not paths:
+        raise ValueError("no pack given")
+    packs = [load_pack(p, device) for p in paths]
+    first = packs[0]
+    for path, pack in zip(paths[1:], packs[1:]):
+        if pack["rgb"].shape[-2:] != first["rgb"].shape[-2:] or pack["lighting_size"] != first["lighting_size"]:
+            raise ValueError(f"{path} holds {tuple(pack['rgb'].shape[-2:])} px images on a {pack['lighting_size']}² "
+                             f"lighting grid, {paths[0]} {tuple(first['rgb'].shape[-2:])} px on "
+                             f"{first['lighting_size']}²; packs trained together must match: pack them alike")
+    if len(packs) == 1:
+        return first
+    out = {k: torch.cat([p[k] for p in packs]) for k in ("rgb", "albedo", "mask", "env")}
+    out.update(names=[n for p in packs for n in p["names"]], lighting_size=first["lighting_size"])
+    return out
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--data", type=Path, required=True)
