@@ -120,6 +120,7 @@ def test_several_packs_train_as_one_and_must_match(tmp_path, capsys):
           "--num-heads", "2", "--eval-items", "1", "--eval-steps", "1", "--warmup", "1"])
     start = json.loads((tmp_path / "run" / "log.jsonl").read_text().splitlines()[0])
     assert start["event"] == "start" and start["items"] == 5
+    assert start["config"]["pack"] == f"{tmp_path / 'a.npz'} {tmp_path / 'b.npz'}"
     capsys.readouterr()
 
 

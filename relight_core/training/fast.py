@@ -306,7 +306,8 @@ def train(config: FastConfig) -> dict:
 
     params = sum(p.numel() for p in dit.parameters())
     write(event="start", items=len(pack["rgb"]), test_items=len(test["rgb"]) if test else 0, params=params,
-          config={k: str(v) for k, v in asdict(config).items()}, load_s=round(time.time() - started, 1),
+          config={k: " ".join(map(str, v)) if k == "pack" and isinstance(v, tuple) else str(v)
+                  for k, v in asdict(config).items()}, load_s=round(time.time() - started, 1),
           device=str(torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu"))
     budget = config.minutes * 60
     train_started = time.time()
