@@ -114,7 +114,6 @@ def test_several_packs_train_as_one_and_must_match(tmp_path, capsys):
     with pytest.raises(ValueError, match="c.npz holds \\(16, 16\\) px images"):
         load_packs([tmp_path / "a.npz", tmp_path / "c.npz"])
     # The trainer's --pack takes several: a run on both sees all five scenes.
-    from relight_core.training.fast import main
     main(["--pack", str(tmp_path / "a.npz"), str(tmp_path / "b.npz"), "--out", str(tmp_path / "run"),
           "--minutes", "0.01", "--device", "cpu", "--batch", "2", "--width", "32", "--depth", "1",
           "--num-heads", "2", "--eval-items", "1", "--eval-steps", "1", "--warmup", "1"])
