@@ -121,6 +121,13 @@ def test_several_packs_train_as_one_and_must_match(tmp_path, capsys):
     assert start["event"] == "start" and start["items"] == 5
     assert start["config"]["pack"] == f"{tmp_path / 'a.npz'} {tmp_path / 'b.npz'}"
     capsys.readouterr()
+    # From the command line a mismatch or a missing pack is one sentence (exit 2), not a traceback.
+    for packs, sentence in (([tmp_path / "a.npz", tmp_path / "c.npz"], "c.npz holds (16, 16) px images"),
+                            ([tmp_path / "a.npz", tmp_path / "gone.npz"], "no pack at")):
+        with pytest.raises(SystemExit) as exit_info:
+            main(["--pack", *map(str, packs), "--out", str(tmp_path / "run2"), "--minutes", "0.01",
+                  "--device", "cpu", "--width", "32", "--depth", "1", "--num-heads", "2"])
+        assert exit_info.value.code == 2 and sentence in capsys.readouterr().err
 
 
 def test_batches_flip_image_and_probe_together(tmp_path):

@@ -45,7 +45,7 @@ from relight_core.dit import DiTConfig, JointDiT, pack_lighting
 from relight_core.precision import resolve_precision
 from relight_core.tokenizer import PixelTokenizer
 from relight_core.training.loop import EMA, make_optimizer
-from relight_core.training.pack import load_pack, load_packs
+from relight_core.training.pack import PackMismatch, load_pack, load_packs
 from relight_core.training.recipe import Recipe, denoising_loss, make_example, network
 
 SHARD_BYTES = 15_000_000
@@ -431,7 +431,14 @@ def main(argv: list[str] | None = None) -> None:
     recipe = replace(defaults.recipe, p_mean=args.pop("p_mean"), p_std=args.pop("p_std"),
                      clip_weights=(0.0, 1.0, args.pop("albedo_weight")), residual=args.pop("residual"),
                      p_sigma_max=args.pop("p_sigma_max"))
-    summary = train(FastConfig(**args, recipe=recipe))
+    packs = args["pack"] if isinstance(args["pack"], tuple) else (args["pack"],)
+    for path in packs + ((args["test_pack"],) if args["test_pack"] else ()):
+        if not path.is_file():
+            parser.error(f"no pack at {path}; make one with python -m relight_core.training.pack")
+    try:
+        summary = train(FastConfig(**args, recipe=recipe))
+    except PackMismatch as error:
+        parser.error(str(error))
     print(json.dumps(summary, indent=1))
 
 

@@ -91,6 +91,10 @@ def load_pack(path: Path, device: str | torch.device = "cpu") -> dict[str, torch
     return {k: (v.to(device) if isinstance(v, torch.Tensor) else v) for k, v in out.items()}
 
 
+class PackMismatch(ValueError):
+    """Packs that cannot be trained together (different image size or lighting grid)."""
+
+
 def load_packs(paths: Path | list[Path] | tuple[Path, ...], device: str | torch.device = "cpu") -> dict:
     """Several packs (e.g. scenes rendered with different dataset seeds) as one: their items in order.
     They must share image size and lighting grid."""
@@ -101,7 +105,7 @@ def load_packs(paths: Path | list[Path] | tuple[Path, ...], device: str | torch.
     first = packs[0]
     for path, pack in zip(paths[1:], packs[1:]):
         if pack["rgb"].shape[-2:] != first["rgb"].shape[-2:] or pack["lighting_size"] != first["lighting_size"]:
-            raise ValueError(f"{path} holds {tuple(pack['rgb'].shape[-2:])} px images on a {pack['lighting_size']}² "
+            raise PackMismatch(f"{path} holds {tuple(pack['rgb'].shape[-2:])} px images on a {pack['lighting_size']}² "
                              f"lighting grid, {paths[0]} {tuple(first['rgb'].shape[-2:])} px on "
                              f"{first['lighting_size']}²; packs trained together must match: pack them alike")
     if len(packs) == 1:
