@@ -1,5 +1,9 @@
 """Fixtures shared by several test modules (helpers without fixtures live in factory.py)."""
 
+import sys
+import tempfile
+from types import SimpleNamespace
+
 import pytest
 import torch
 
@@ -23,6 +27,22 @@ def released_files(tmp_path):
     torch.jit.script(FakeCosmosEncoder()).save(str(tokenizer / "encoder.jit"))
     torch.jit.script(FakeCosmosDecoder()).save(str(tokenizer / "decoder.jit"))
     return tmp_path / "model.pt", tokenizer, ours
+
+
+@pytest.fixture(scope="session")
+def _client_scratch(tmp_path_factory):
+    return tmp_path_factory.mktemp("gradio-client")
+
+
+@pytest.fixture(autouse=True)
+def _gradio_client_downloads_in_pytest_tmp(_client_scratch, monkeypatch):
+    """gradio_client (2.x, `Client._download_file`) downloads every output file through a folder it
+    makes in the system temp folder and never removes: the suite's API tests left ~1,000 empty
+    folders in /tmp a run. Its temp folder is pytest's here; nothing else's temp folder changes."""
+    module = sys.modules.get("gradio_client.client")
+    if module is not None:
+        monkeypatch.setattr(module, "tempfile", SimpleNamespace(
+            gettempdir=lambda: str(_client_scratch), TemporaryDirectory=tempfile.TemporaryDirectory))
 
 
 _shared_ray = []  # [(the connect() context, its address)] while the shared instance runs
