@@ -4,12 +4,12 @@ import json
 
 import pytest
 import torch
-from safetensors.torch import save_file
 
-from relight_core.checkpoint import load_model
+from relight_core.checkpoint import ModelSpec, load_model, save_model
 from relight_core.dit import DiTConfig, JointDiT, channel_layout
 from relight_core.errors import InputError
-from relight_core.training.grow import grow_model, grow_state, grown_order
+from relight_core.tokenizer import PixelTokenizer
+from relight_core.training.grow import grow_model, grow_state, grown_order, main
 
 CONFIG = DiTConfig(width=32, depth=4, num_heads=2, adaln_lora_dim=8, patch_spatial=1, out_channels=192)
 
@@ -34,7 +34,7 @@ def inputs(b=2):
 def test_grown_order_inserts_a_copy_after_every_n_blocks():
     assert grown_order(4, 2) == [(0, False), (1, False), (1, True), (2, False), (3, False), (3, True)]
     assert len(grown_order(8, 2)) == 12 and len(grown_order(8, 1)) == 16 and len(grown_order(3, 4)) == 3
-    with pytest.raises(ValueError):
+    with pytest.raises(InputError):
         grown_order(4, 0)
 
 
@@ -68,21 +68,39 @@ def test_the_new_blocks_learn_from_the_first_step():
         assert block.mlp.fc2.weight.grad.abs().sum() > 0
 
 
+def saved(tmp_path, dit, config=CONFIG):
+    spec = ModelSpec(name="t", dit=config, tokenizer={"type": "pixel", "patch": 8}, chunk_frames=1,
+                     overlap_frames=0, size=32, steps=1, notes={"steps": 10})
+    return save_model(tmp_path / "src", spec, dit, PixelTokenizer(8))
+
+
 def test_grow_model_writes_a_loadable_folder(tmp_path):
     dit = trained_like(CONFIG)
-    source = tmp_path / "src"
-    source.mkdir()
-    save_file({k: v.contiguous() for k, v in dit.state_dict().items()}, str(source / "dit.safetensors"))
-    spec = {"name": "t", "dit": {**CONFIG.__dict__, "rope_extrapolation": list(CONFIG.rope_extrapolation)},
-            "tokenizer": {"type": "pixel", "patch": 8}, "chunk_frames": 1, "overlap_frames": 0, "size": 32,
-            "steps": 1, "trained": True, "notes": {"steps": 10}}
-    (source / "config.json").write_text(json.dumps(spec))
-    out = grow_model(source, tmp_path / "grown", every=4)
+    out, depth = grow_model(saved(tmp_path, dit), tmp_path / "grown", every=4)
     config = json.loads((out / "config.json").read_text())
-    assert config["dit"]["depth"] == 5 and config["notes"]["previous_notes"] == {"steps": 10}
+    assert depth == config["dit"]["depth"] == 5 and config["notes"]["previous_notes"] == {"steps": 10}
     _, grown, _ = load_model(out)
     x, c_noise = inputs()
     with torch.no_grad():
         torch.testing.assert_close(grown(x, c_noise), dit(x, c_noise), rtol=0, atol=1e-6)
     with pytest.raises(InputError):
         grow_model("tiny", tmp_path / "nope")
+
+
+def test_bad_folders_and_counts_get_one_sentence_not_a_traceback(tmp_path, capsys):
+    source = saved(tmp_path, trained_like(CONFIG), DiTConfig(**{**CONFIG.__dict__, "depth": 4}))
+    config = json.loads((source / "config.json").read_text())
+    config["dit"]["depth"] = 6  # the weights hold 4 blocks
+    (source / "config.json").write_text(json.dumps(config))
+    with pytest.raises(InputError, match="no block 4"):
+        grow_model(source, tmp_path / "a")
+    good = saved(tmp_path / "good", trained_like(CONFIG))
+    cases = ((["--model", str(good), "--out", str(tmp_path / "b"), "--every", "0"], "--every takes"),
+             (["--model", str(source), "--out", str(tmp_path / "c")], "Cannot read"))
+    (source / "dit.safetensors").write_bytes(b"not safetensors")
+    for argv, sentence in cases:
+        with pytest.raises(SystemExit) as exit_info:
+            main(argv)
+        assert exit_info.value.code == 2
+        err = capsys.readouterr().err
+        assert err.startswith(f"error: {sentence}") and "Traceback" not in err and err.count("\n") == 1

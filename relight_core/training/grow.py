@@ -33,7 +33,7 @@ ZEROED = ("self_attn.out_proj.weight", "cross_attn.out_proj.weight", "mlp.fc2.we
 def grown_order(depth: int, every: int) -> list[tuple[int, bool]]:
     """(source block, is a new zero-output copy) for each block of the grown stack."""
     if every < 1:
-        raise ValueError(f"every must be ≥ 1 (got {every})")
+        raise InputError(f"--every takes a count of blocks, 1 or more, not {every}.")
     order = []
     for i in range(depth):
         order.append((i, False))
@@ -50,7 +50,8 @@ def grow_state(state: dict[str, torch.Tensor], depth: int, every: int) -> tuple[
         prefix = f"blocks.{source}."
         names = [k for k in state if k.startswith(prefix)]
         if not names:
-            raise ValueError(f"the state dict has no block {source} (depth {depth} expected)")
+            raise InputError(f"The weights have no block {source}, but the config says depth {depth}; "
+                             "grow a complete model folder.")
         for name in names:
             rest = name[len(prefix):]
             value = state[name].clone()
@@ -60,13 +61,19 @@ def grow_state(state: dict[str, torch.Tensor], depth: int, every: int) -> tuple[
     return out, len(order)
 
 
-def grow_model(model: str | Path, out: str | Path, every: int = 2) -> Path:
-    """Write the grown copy of a model folder (config.json with the new depth + dit.safetensors)."""
+def grow_model(model: str | Path, out: str | Path, every: int = 2) -> tuple[Path, int]:
+    """Write the grown copy of a model folder (config.json with the new depth + dit.safetensors);
+    returns (the folder, its depth)."""
     spec, directory = resolve_model(model)
     if directory is None:
         raise InputError(f"'{model}' is a preset without weights; grow a trained model folder.")
     config = json.loads((directory / CONFIG_FILE).read_text())
-    state, depth = grow_state(load_file(str(directory / DIT_FILE)), spec.dit.depth, every)
+    try:
+        weights = load_file(str(directory / DIT_FILE))
+    except Exception as exc:  # missing, truncated or not safetensors
+        raise InputError(f"Cannot read {directory / DIT_FILE} ({type(exc).__name__}); "
+                         "copy the complete model folder.") from exc
+    state, depth = grow_state(weights, spec.dit.depth, every)
     config["dit"]["depth"] = depth
     config["notes"] = {"grown": f"depth {spec.dit.depth} → {depth}: a zero-output copy after every {every} blocks "
                                 "(relight_core.training.grow)",
@@ -75,7 +82,7 @@ def grow_model(model: str | Path, out: str | Path, every: int = 2) -> Path:
     out.mkdir(parents=True, exist_ok=True)
     save_file({k: v.contiguous() for k, v in state.items()}, str(out / DIT_FILE))
     (out / CONFIG_FILE).write_text(json.dumps(config, indent=2, ensure_ascii=False) + "\n")
-    return out
+    return out, depth
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -84,8 +91,10 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--out", required=True, type=Path, help="the folder to write the grown model to")
     parser.add_argument("--every", type=int, default=2, help="insert a new block after every N blocks")
     args = parser.parse_args(argv)
-    out = grow_model(args.model, args.out, args.every)
-    depth = json.loads((out / CONFIG_FILE).read_text())["dit"]["depth"]
+    try:
+        out, depth = grow_model(args.model, args.out, args.every)
+    except InputError as exc:
+        parser.exit(2, f"error: {exc}\n")
     print(f"wrote {out} (depth {depth})")
 
 
