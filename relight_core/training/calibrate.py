@@ -34,8 +34,10 @@ from pathlib import Path
 
 import numpy as np
 
-GRID = (0.0, 0.25, 0.375, 0.5, 0.625, 0.75, 1.0, 1.25)  # past 1: a best gain of 1 is then a peak, not the grid's edge
-RADII = (0, 2, 4, 8, 16)  # offset filter radii (px at the model's size); 0 = the model's output as it is
+# Past 1: a best gain of 1 is then a peak, not the grid's edge. Finer between 0.75 and 1.1, where every
+# model so far peaked (a 0.25 step there left up to ~0.1 dB on the table, docs/QUALITY.md).
+GRID = (0.0, 0.25, 0.375, 0.5, 0.625, 0.75, 0.8, 0.85, 0.9, 0.95, 1.0, 1.05, 1.1, 1.25)
+RADII = (0, 2, 3, 4, 6, 8, 12, 16)  # offset filter radii (px at the model's size); 0 = the model's output as it is
 
 
 def measure_gains(relighter, items, grid=GRID, seed: int = 0, radii=RADII
