@@ -101,7 +101,7 @@ def markdown(results: dict) -> str:
                   "both; ≈ 0 for a model that ignores the light)."]
     train = results["train"]
     lines += ["", f"## Train-set reproduction ({train['items']} train items)", ""]
-    lines += _quality_table(train) if train["items"] else [f"Not measured: {train.get('note')}."]
+    lines += _quality_table(train) if train["items"] else [f"Not measured: {str(train.get('note')).rstrip('.')}."]
     if results.get("steps"):
         lines += ["", "## Steps vs quality (test items)", "",
                   "| steps | relit PSNR | relit SSIM | albedo PSNR | albedo SSIM | albedo ΔE2000 | s / item |",
