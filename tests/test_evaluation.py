@@ -396,7 +396,6 @@ def test_evaluate_at_a_larger_size_measures_there(dataset, tmp_path):
     assert "model size 64 px, measured at 96×96" in (out / "metrics.md").read_text()
 
 
-
 def test_evaluate_without_a_train_split_reports_why_in_one_sentence(dataset, tmp_path):
     # Train-set reproduction asked for where no train split was rendered: the test split is still
     # measured, and the report says why the train table is missing, as one sentence.
@@ -410,6 +409,7 @@ def test_evaluate_without_a_train_split_reports_why_in_one_sentence(dataset, tmp
     assert results["test"]["items"] == 1 and results["train"]["items"] == 0
     line = next(x for x in (out / "metrics.md").read_text().splitlines() if x.startswith("Not measured:"))
     assert "manifest" in line and "render-data" in line and line.endswith(".") and not line.endswith("..")
+
 
 def test_evaluate_bad_input_is_one_sentence_and_exit_2(dataset, tmp_path, capsys):
     assert main(["evaluate", "--data", str(tmp_path / "missing"), "--model", "tiny", "--out", str(tmp_path)]) == 2

@@ -68,8 +68,8 @@ def test_the_new_blocks_learn_from_the_first_step():
         assert block.mlp.fc2.weight.grad.abs().sum() > 0
 
 
-def saved(tmp_path, dit, config=CONFIG):
-    spec = ModelSpec(name="t", dit=config, tokenizer={"type": "pixel", "patch": 8}, chunk_frames=1,
+def saved(tmp_path, dit):
+    spec = ModelSpec(name="t", dit=CONFIG, tokenizer={"type": "pixel", "patch": 8}, chunk_frames=1,
                      overlap_frames=0, size=32, steps=1, notes={"steps": 10})
     return save_model(tmp_path / "src", spec, dit, PixelTokenizer(8))
 
@@ -88,7 +88,7 @@ def test_grow_model_writes_a_loadable_folder(tmp_path):
 
 
 def test_bad_folders_and_counts_get_one_sentence_not_a_traceback(tmp_path, capsys):
-    source = saved(tmp_path, trained_like(CONFIG), DiTConfig(**{**CONFIG.__dict__, "depth": 4}))
+    source = saved(tmp_path, trained_like(CONFIG))
     config = json.loads((source / "config.json").read_text())
     config["dit"]["depth"] = 6  # the weights hold 4 blocks
     (source / "config.json").write_text(json.dumps(config))
