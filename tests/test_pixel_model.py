@@ -186,11 +186,18 @@ def test_light_mixes_keep_each_item_mostly_one_probe():
     assert target.std() > 0.1 and source.std() > 0.1
 
 
-def test_a_mix_share_outside_0_to_1_is_refused_before_anything_loads(tmp_path, capsys):
+def test_mix_and_crop_shares_outside_their_range_are_refused_before_anything_loads(tmp_path, capsys):
     with pytest.raises(SystemExit) as exit_info:
         main(["--pack", str(tmp_path / "missing.npz"), "--out", str(tmp_path / "run"), "--mix-lights", "1.5"])
     assert exit_info.value.code == 2
     assert "--mix-lights is a share of items, from 0 to 1; got 1.5" in capsys.readouterr().err
+    assert not (tmp_path / "run").exists()
+    for flags, message in ((["--crop", "0.5", "--crop-min", "0"], "--crop-min a fraction of the frame in (0, 1]"),
+                           (["--crop", "0.5"], "--crop zooms into the packs' full-size images, so it needs a smaller "
+                                              "--train-size")):
+        with pytest.raises(SystemExit) as exit_info:
+            main(["--pack", str(tmp_path / "missing.npz"), "--out", str(tmp_path / "run"), *flags])
+        assert exit_info.value.code == 2 and message in capsys.readouterr().err
     assert not (tmp_path / "run").exists()
 
 
@@ -316,12 +323,13 @@ def test_training_at_a_smaller_size_shrinks_the_packs_as_the_pipeline_shrinks_fr
     for bad in (12, 64):
         with pytest.raises(ValueError, match="--train-size"):
             shrink_pack(pack, bad)
-    # A run with --train-size exports a model that works at that size ...
+    # A run with --train-size (here every item a zoomed crop of the 32-px images) exports a model that
+    # works at that size ...
     train(FastConfig(pack=tmp_path / "p.npz", out=tmp_path / "run", device="cpu", batch=2, width=32, depth=1,
                      num_heads=2, log_every=1, eval_items=2, eval_steps=1, warmup=1, minutes=0.01, train_size=16,
-                     recipe=Recipe(residual=True)))
+                     crop=1.0, recipe=Recipe(residual=True)))
     spec, dit, tok = load_model(tmp_path / "run" / "model")
-    assert spec.size == 16 and spec.residual
+    assert spec.size == 16 and spec.residual and spec.notes["crop"] == {"share": 1.0, "smallest": 0.5}
     # ... and calibrating it at its data's size scores the results brought back there: at gain 0 (the
     # input unchanged at 16 px, ratio 1) the score is the input-copy floor at 32 px exactly.
     relighter = Relighter(spec, dit, tok)
@@ -337,3 +345,32 @@ def test_training_at_a_smaller_size_shrinks_the_packs_as_the_pipeline_shrinks_fr
     assert calibrate.measure_gains(relighter, small_items, grid=(0.0,), radii=(0,))[0.0, 0]["relit"] == \
         pytest.approx(small_floor, abs=1e-4)
     assert abs(small_floor - floor) > 1e-2
+
+
+def test_crops_zoom_into_the_full_size_images_and_keep_the_probes(tmp_path):
+    from relight_core.training.fast import crop_draws, crop_items, shrink_pack
+
+    write_pack(_write_dataset(tmp_path / "data", size=32), "train", tmp_path / "p.npz", lighting_size=8)
+    full = load_pack(tmp_path / "p.npz")
+    small = shrink_pack(full, 16)
+    idx = torch.tensor([2, 0, 2])
+    # Side 1 is the shrunk item; side ½ at the right, top corner is the full image's 16×16 there,
+    # pixel for pixel (nothing to shrink); side ¾ is a 24-px crop shrunk to 16.
+    items = crop_items(full, small, idx, torch.tensor([[1.0, 0.3, 0.9], [0.5, 1.0, 0.0], [0.75, 0.0, 1.0]]))
+    assert torch.equal(items["rgb"][0], small["rgb"][2]) and torch.equal(items["albedo"][0], small["albedo"][2])
+    assert torch.equal(items["rgb"][1], full["rgb"][0][..., :16, 16:])
+    assert torch.equal(items["albedo"][1], full["albedo"][0][..., :16, 16:])
+    crop = full["rgb"][2][..., 8:, :24].reshape(6, 24, 24)[None].float()
+    shrunk = torch.nn.functional.interpolate(crop, size=(16, 16), mode="bilinear", antialias=True, align_corners=False)
+    assert torch.equal(items["rgb"][2], shrunk[0].round().to(torch.uint8).reshape(2, 3, 16, 16))
+    assert not torch.equal(items["rgb"][2], small["rgb"][2])
+    assert torch.equal(items["env"], full["env"][idx])    # the camera-frame probes stay
+    # make_batch takes the items as a pack of their own.
+    batch = make_batch(items, PixelTokenizer(8), torch.arange(3), torch.tensor([0, 1, 0]), torch.zeros(3, dtype=torch.bool))
+    assert torch.equal(PixelTokenizer(8).decode(batch["relit"])[1, :, 0], full["rgb"][0, 1][..., :16, 16:].float() / 127.5 - 1)
+    # The draws: a share of items cropped, their sides within [smallest, 1).
+    draws = crop_draws(4000, 0.25, 0.5, torch.Generator().manual_seed(0), torch.device("cpu"))
+    cropped = draws[:, 0] < 1
+    assert 0.22 < cropped.float().mean() < 0.28 and draws[cropped, 0].min() >= 0.5
+    assert ((draws[:, 1:] >= 0) & (draws[:, 1:] < 1)).all()
+    assert torch.equal(crop_draws(8, 0.0, 0.5, torch.Generator(), torch.device("cpu"))[:, 0], torch.ones(8))

@@ -82,6 +82,8 @@ class FastConfig:
     checkpoint_every_minutes: float = 5.0  # <out>/checkpoint.pt (weights, EMA, optimizer, RNG): exact resume
     train_size: int | None = None        # shrink the packs' images to this side (px) first; the model's size
     mix_lights: float = 0.0              # share of items relit between mixtures of their two probes (make_batch)
+    crop: float = 0.0                    # share of items cut as a zoomed crop of the full-size pack (crop_items)
+    crop_min: float = 0.5                # the smallest crop's side, a fraction of the frame's
     recipe: Recipe = field(default_factory=Recipe)
 
 
@@ -120,6 +122,37 @@ def shrink_pack(pack: dict, size: int, multiple: int = 8) -> dict:
     out["albedo"] = shrink(pack["albedo"]).round().clamp(0, 255).to(torch.uint8)
     out["mask"] = shrink(pack["mask"]) > 0.5
     return out
+
+
+def crop_draws(batch: int, share: float, smallest: float, generator: torch.Generator,
+               device: torch.device) -> torch.Tensor:
+    """`crop_items`' crops [B,3]: (side as a fraction of the frame's, from U(smallest, 1); left and top
+    as fractions of the room left), side 1 for the items not cropped (1 − `share` of them)."""
+    draw = torch.rand(batch, 4, generator=generator, device=device)
+    side = torch.where(draw[:, 0] < share, smallest + (1 - smallest) * draw[:, 1], torch.ones_like(draw[:, 1]))
+    return torch.stack([side, draw[:, 2], draw[:, 3]], dim=1)
+
+
+def crop_items(full: dict, small: dict, indices: torch.Tensor, crops: torch.Tensor) -> dict:
+    """The batch's items as a pack of their own (rgb, albedo, env; index it with arange): an item whose
+    crop side is 1 is the `small` (shrunk) pack's; the others are a crop of the `full`-size pack's images
+    shrunk to the small size (antialiased bilinear, as `shrink_pack`). Exact for the task: a crop of the
+    sensor is the same camera turned nowhere, so the camera-frame probes stay as they are; the model sees
+    its scenes at up to 1/side × the detail of the training size."""
+    rgb, albedo = small["rgb"][indices].clone(), small["albedo"][indices].clone()
+    height, width = full["rgb"].shape[-2:]
+    size = rgb.shape[-2:]
+    for i in torch.nonzero(crops[:, 0] < 1).flatten().tolist():
+        side, left, top = crops[i].tolist()
+        h, w = max(size[0], round(side * height)), max(size[1], round(side * width))
+        y, x = round(top * (height - h)), round(left * (width - w))
+        item = int(indices[i])
+        images = torch.cat([full["rgb"][item].reshape(-1, height, width), full["albedo"][item]])[:, y:y + h, x:x + w]
+        images = torch.nn.functional.interpolate(images[None].float(), size=tuple(size), mode="bilinear",
+                                                 antialias=True, align_corners=False)[0]
+        images = images.round().clamp(0, 255).to(torch.uint8)
+        rgb[i], albedo[i] = images[:-3].reshape(rgb.shape[1:]), images[-3:]
+    return {"rgb": rgb, "albedo": albedo, "env": small["env"][indices]}
 
 
 def make_batch(pack: dict, tokenizer: PixelTokenizer, indices: torch.Tensor, target: torch.Tensor,
@@ -268,6 +301,7 @@ def train(config: FastConfig) -> dict:
         torch.backends.cuda.matmul.allow_tf32 = True
         torch.backends.cudnn.allow_tf32 = True
     pack = load_packs(config.pack, device)
+    full = pack  # crops (--crop) are cut from the images at the pack's size
     test = load_pack(config.test_pack, device) if config.test_pack else None
     if config.train_size is not None:
         pack = shrink_pack(pack, config.train_size, config.patch)
@@ -329,6 +363,8 @@ def train(config: FastConfig) -> dict:
     notes = {"recipe": asdict(config.recipe), "batch": config.batch, "lr": config.lr}
     if config.mix_lights > 0:
         notes["mix_lights"] = config.mix_lights
+    if config.crop > 0:
+        notes["crop"] = {"share": config.crop, "smallest": config.crop_min}
     while True:
         elapsed = time.time() - train_started
         if elapsed > budget:
@@ -344,7 +380,12 @@ def train(config: FastConfig) -> dict:
         mix = None
         if config.mix_lights > 0:  # no extra draws without it: runs before it resume exactly
             mix = light_mix(config.batch, config.mix_lights, generator, device)
-        batch = make_batch(pack, tokenizer, indices, target, flip, mix)
+        if config.crop > 0:  # likewise
+            items = crop_items(full, pack, indices, crop_draws(config.batch, config.crop, config.crop_min,
+                                                                generator, device))
+            batch = make_batch(items, tokenizer, torch.arange(config.batch, device=device), target, flip, mix)
+        else:
+            batch = make_batch(pack, tokenizer, indices, target, flip, mix)
         example = make_example(batch["input"], batch["relit"], batch["albedo"], batch["lighting"],
                                config.recipe, generator)
         try:
@@ -414,6 +455,10 @@ def main(argv: list[str] | None = None) -> None:
                         help="share of samples trained at σ_max, the one-step sampler's only call")
     parser.add_argument("--mix-lights", type=float, default=0.0,
                         help="share of items relit between mixtures of their scene's two probes (linear light)")
+    parser.add_argument("--crop", type=float, default=0.0,
+                        help="share of items cut as a zoomed crop of the pack's full-size images (crop_items)")
+    parser.add_argument("--crop-min", type=float, default=0.5,
+                        help="the smallest crop's side, as a fraction of the frame's (--crop)")
     defaults = FastConfig(pack=Path(), out=Path())
     for name in ("minutes", "device", "batch", "lr", "warmup", "ema_decay", "width", "depth", "num_heads",
                  "seed", "log_every", "eval_items", "eval_steps", "export_every_minutes", "export_steps",
@@ -428,6 +473,11 @@ def main(argv: list[str] | None = None) -> None:
     args["pack"] = args["pack"][0] if len(args["pack"]) == 1 else tuple(args["pack"])
     if not 0 <= args["mix_lights"] <= 1:
         parser.error(f"--mix-lights is a share of items, from 0 to 1; got {args['mix_lights']}")
+    if not 0 <= args["crop"] <= 1 or not 0 < args["crop_min"] <= 1:
+        parser.error(f"--crop is a share of items from 0 to 1 and --crop-min a fraction of the frame in (0, 1]; "
+                     f"got {args['crop']} and {args['crop_min']}")
+    if args["crop"] > 0 and args["train_size"] is None:
+        parser.error("--crop zooms into the packs' full-size images, so it needs a smaller --train-size")
     recipe = replace(defaults.recipe, p_mean=args.pop("p_mean"), p_std=args.pop("p_std"),
                      clip_weights=(0.0, 1.0, args.pop("albedo_weight")), residual=args.pop("residual"),
                      p_sigma_max=args.pop("p_sigma_max"))
