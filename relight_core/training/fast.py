@@ -16,7 +16,8 @@ PSNR on train and test items (`<out>/samples.json`). `--init DIR` starts from a 
 DiT (to continue from the shipped weights; `--zero-head` zeroes its output layer). `--residual`
 trains relit/albedo as offsets from the input (`ModelSpec.residual`), `--p-sigma-max` trains a
 share of samples at σ = 80 (the one-step sampler's call), `--mix-lights` relights a share of items
-between mixtures of their scene's two probes (`make_batch`). `<out>/checkpoint.pt` (every
+between mixtures of their scene's two probes (`make_batch`), `--crop` cuts a share of items as zoomed
+crops of the packs' full-size images (`crop_items`). `<out>/checkpoint.pt` (every
 `--checkpoint-every-minutes` and at the end) makes a run started again on the same `--out` resume
 exactly where it stopped. `--pack` takes several packs (e.g. scenes of different dataset seeds),
 trained as one (`pack.load_packs`).
