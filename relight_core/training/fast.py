@@ -137,9 +137,10 @@ def crop_draws(batch: int, share: float, smallest: float, generator: torch.Gener
 def crop_items(full: dict, small: dict, indices: torch.Tensor, crops: torch.Tensor) -> dict:
     """The batch's items as a pack of their own (rgb, albedo, env; index it with arange): an item whose
     crop side is 1 is the `small` (shrunk) pack's; the others are a crop of the `full`-size pack's images
-    shrunk to the small size (antialiased bilinear, as `shrink_pack`). Exact for the task: a crop of the
-    sensor is the same camera turned nowhere, so the camera-frame probes stay as they are; the model sees
-    its scenes at up to 1/side × the detail of the training size."""
+    shrunk to the small size (antialiased bilinear, as `shrink_pack`); a crop is never smaller than the
+    small size (never enlarged). Exact for the task: a crop of the sensor is the same camera looking the
+    same way, so the camera-frame probes stay as they are; the model sees its scenes at up to 1/side × the
+    detail of the training size."""
     rgb, albedo = small["rgb"][indices].clone(), small["albedo"][indices].clone()
     height, width = full["rgb"].shape[-2:]
     size = rgb.shape[-2:]
@@ -459,7 +460,8 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--crop", type=float, default=0.0,
                         help="share of items cut as a zoomed crop of the pack's full-size images (crop_items)")
     parser.add_argument("--crop-min", type=float, default=0.5,
-                        help="the smallest crop's side, as a fraction of the frame's (--crop)")
+                        help="the smallest crop's side, as a fraction of the frame's (--crop); never below "
+                             "--train-size, a crop is not enlarged")
     defaults = FastConfig(pack=Path(), out=Path())
     for name in ("minutes", "device", "batch", "lr", "warmup", "ema_decay", "width", "depth", "num_heads",
                  "seed", "log_every", "eval_items", "eval_steps", "export_every_minutes", "export_steps",
