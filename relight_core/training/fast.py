@@ -111,18 +111,23 @@ def shrink_pack(pack: dict, size: int, multiple: int = 8) -> dict:
     H, W = target_size(height, width, size, multiple)
     if (H, W) == (height, width):
         return pack
-
-    def shrink(images: torch.Tensor) -> torch.Tensor:   # [..., C, h, w] uint8 or bool
-        lead = images.shape[:-2]
-        x = images.reshape(-1, 1, height, width).float()
-        x = torch.nn.functional.interpolate(x, size=(H, W), mode="bilinear", antialias=True, align_corners=False)
-        return x.reshape(*lead, H, W)
-
     out = dict(pack)
-    out["rgb"] = shrink(pack["rgb"]).round().clamp(0, 255).to(torch.uint8)
-    out["albedo"] = shrink(pack["albedo"]).round().clamp(0, 255).to(torch.uint8)
-    out["mask"] = shrink(pack["mask"]) > 0.5
+    out["rgb"] = _to_uint8(_shrink(pack["rgb"], (H, W)))
+    out["albedo"] = _to_uint8(_shrink(pack["albedo"], (H, W)))
+    out["mask"] = _shrink(pack["mask"], (H, W)) > 0.5
     return out
+
+
+def _shrink(images: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
+    """Images [..., h, w] (uint8 or bool) shrunk to `size` as float: antialiased bilinear, each plane alone."""
+    lead, (height, width) = images.shape[:-2], images.shape[-2:]
+    x = images.reshape(-1, 1, height, width).float()
+    x = torch.nn.functional.interpolate(x, size=size, mode="bilinear", antialias=True, align_corners=False)
+    return x.reshape(*lead, *size)
+
+
+def _to_uint8(images: torch.Tensor) -> torch.Tensor:
+    return images.round().clamp(0, 255).to(torch.uint8)
 
 
 def crop_draws(batch: int, share: float, smallest: float, generator: torch.Generator,
@@ -149,11 +154,8 @@ def crop_items(full: dict, small: dict, indices: torch.Tensor, crops: torch.Tens
         h, w = max(size[0], round(side * height)), max(size[1], round(side * width))
         y, x = round(top * (height - h)), round(left * (width - w))
         item = int(indices[i])
-        images = torch.cat([full["rgb"][item].reshape(-1, height, width), full["albedo"][item]])[:, y:y + h, x:x + w]
-        images = torch.nn.functional.interpolate(images[None].float(), size=tuple(size), mode="bilinear",
-                                                 antialias=True, align_corners=False)[0]
-        images = images.round().clamp(0, 255).to(torch.uint8)
-        rgb[i], albedo[i] = images[:-3].reshape(rgb.shape[1:]), images[-3:]
+        rgb[i] = _to_uint8(_shrink(full["rgb"][item][..., y:y + h, x:x + w], tuple(size)))
+        albedo[i] = _to_uint8(_shrink(full["albedo"][item][..., y:y + h, x:x + w], tuple(size)))
     return {"rgb": rgb, "albedo": albedo, "env": small["env"][indices]}
 
 
