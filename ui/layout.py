@@ -214,12 +214,14 @@ def build_demo(studio: Studio, examples_dir: Path | None = None) -> gr.Blocks:
                                                             api_visibility="private")
         page_preview_inputs = [probe_name, probe_file, rotation, exposure, rotate_light, sweep_start, temperature,
                                camera_pitch, camera_roll, tint]
-        # Renders follow the slider while it moves; "always_last" drops stale positions. A probe that
-        # cannot be used shows no preview here: probe_info says why.
+        # Renders follow the slider while it moves; "always_last" drops stale positions. One render at a
+        # time (the group's limit): two controls moved in quick succession would otherwise render side by
+        # side and could finish out of order, leaving the older light on show. A probe that cannot be
+        # used shows no preview here: probe_info says why.
         for component in (rotation, probe_name, probe_file, exposure, temperature, camera_pitch, camera_roll,
                           tint, rotate_light, sweep_start):
             component.change(studio.light_preview_quiet, page_preview_inputs, light_preview,
-                             trigger_mode="always_last", concurrency_limit=2, concurrency_id="preview",
+                             trigger_mode="always_last", concurrency_limit=1, concurrency_id="preview",
                              api_visibility="private")
         api_preview.click(studio.light_preview,
                           [probe_name, probe_file, rotation, exposure, mode, rotate_light, sweep_start, temperature,
