@@ -34,6 +34,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from relight_core.evaluation.harness import RunOptions, brought_back, load_items, model_size, relight  # noqa: E402
 from relight_core.evaluation.metrics import protocol_psnr  # noqa: E402
 from relight_core.pipeline import Relighter  # noqa: E402
+from relight_core.precision import resolve_precision  # noqa: E402
 from relight_core.requests import RelightRequest  # noqa: E402
 
 
@@ -114,17 +115,18 @@ def load(paths) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
             torch.from_numpy(cat("mask")))
 
 
-def signed(u8: torch.Tensor) -> torch.Tensor:
-    return u8.float() / 127.5 - 1
+def signed(u8: torch.Tensor, device: torch.device | str = "cpu") -> torch.Tensor:
+    return u8.to(device).float() / 127.5 - 1
 
 
 def score(net, x, y, m) -> tuple[float, float]:
     """Mean protocol PSNR (relit, albedo) of the refined results."""
+    device = next(net.parameters()).device
     net.eval()
     relit, albedo = [], []
     with torch.no_grad():
         for i in range(0, len(x), 16):
-            pred = ((net(signed(x[i:i + 16])).clamp(-1, 1) + 1) / 2).permute(0, 2, 3, 1).numpy()
+            pred = ((net(signed(x[i:i + 16], device)).float().clamp(-1, 1) + 1) / 2).permute(0, 2, 3, 1).cpu().numpy()
             truth = (y[i:i + 16].float() / 255).permute(0, 2, 3, 1).numpy()
             mask = m[i:i + 16].float().numpy()
             for k in range(len(pred)):
@@ -138,9 +140,10 @@ def train(args) -> None:
     torch.manual_seed(0)
     tx, ty, tm = load([args.test])
     x, y, m = load(args.train)
-    net = Refiner(args.width).to(memory_format=torch.channels_last)
+    device = torch.device(args.device or ("cuda" if torch.cuda.is_available() else "cpu"))
+    net = Refiner(args.width).to(device, memory_format=torch.channels_last)
     opt = torch.optim.AdamW(net.parameters(), lr=args.lr, weight_decay=1e-4)
-    fast = torch.backends.cpu.get_cpu_capability() in ("AVX512_BF16", "AMX") or torch.cuda.is_available()
+    fast = resolve_precision("auto", device) == torch.bfloat16  # bf16 only where this device runs it fast
     log = Path(f"{args.out}.jsonl").open("a")
 
     def write(**record):
@@ -157,9 +160,11 @@ def train(args) -> None:
             group["lr"] = args.lr * min(1, (step + 1) / 100) * (0.05 + 0.95 * 0.5 * (1 + math.cos(math.pi * progress)))
         index = torch.randint(0, len(x), (args.batch,), generator=generator)
         flip = (torch.rand(args.batch, generator=generator) < 0.5).view(-1, 1, 1, 1)
+        flip = flip.to(device)
         xb, yb, mb = (torch.where(flip, v.flip(-1), v).contiguous(memory_format=torch.channels_last)
-                      for v in (signed(x[index]), signed(y[index]), m[index].float()[:, None]))
-        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=fast):
+                      for v in (signed(x[index], device), signed(y[index], device),
+                                m[index].to(device).float()[:, None]))
+        with torch.autocast(device.type, dtype=torch.bfloat16, enabled=fast):
             pred = net(xb)
         weight = 0.1 + mb  # the foreground counts, the background a little
         loss = ((pred.float() - yb) ** 2 * weight).sum() / (weight.sum() * 6)
@@ -193,6 +198,7 @@ def main() -> None:
     t.add_argument("--lr", type=float, default=2e-3)
     t.add_argument("--batch", type=int, default=16)
     t.add_argument("--eval-every", type=int, default=400)
+    t.add_argument("--device", default=None, help="cpu or cuda (default: cuda when there is one)")
     args = parser.parse_args()
     if args.command == "results" and (args.data is None) == (args.pack is None):
         parser.error("results takes --data (test items) or --pack (train items)")
