@@ -33,13 +33,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from relight_core.evaluation.harness import RunOptions, brought_back, load_items, model_size, relight  # noqa: E402
 from relight_core.evaluation.metrics import protocol_psnr  # noqa: E402
+from relight_core.media.image import to_uint8  # noqa: E402
 from relight_core.pipeline import Relighter  # noqa: E402
 from relight_core.precision import resolve_precision  # noqa: E402
 from relight_core.requests import RelightRequest  # noqa: E402
-
-
-def to_uint8(x) -> np.ndarray:
-    return np.clip(np.rint(np.asarray(x) * 255), 0, 255).astype(np.uint8)
 
 
 def results(args) -> None:
