@@ -339,6 +339,10 @@ def test_training_at_a_smaller_size_shrinks_the_packs_as_the_pipeline_shrinks_fr
     assert table[0.0, 0]["relit"] == pytest.approx(floor, abs=1e-4)
     assert table[0.0, 2]["relit"] == pytest.approx(floor, abs=1e-4)
     assert set(table) == {(0.0, 0), (0.0, 2), (1.0, 0), (1.0, 2)}
+    # Unless asked for another, the filter's eps is the one Relighter uses.
+    from relight_core.upsample import GUIDE_EPS
+    assert calibrate.measure_gains(relighter, items, grid=(1.0,), radii=(2,), eps=GUIDE_EPS) == \
+        {key: table[key] for key in [(1.0, 2)]}
     # At the model's own size the same calibration scores the 16-px floor, another number.
     small_items = [resized(item, 16, 8) for item in load_items(root, "train", 2)]
     small_floor = np.mean([protocol_psnr(item.input, item.target, item.mask) for item in small_items])

@@ -40,17 +40,19 @@ GRID = (0.0, 0.25, 0.375, 0.5, 0.625, 0.75, 0.8, 0.85, 0.9, 0.95, 1.0, 1.05, 1.1
 RADII = (0, 2, 3, 4, 6, 8, 12, 16)  # offset filter radii (px at the model's size); 0 = the model's output as it is
 
 
-def measure_gains(relighter, items, grid=GRID, seed: int = 0, radii=RADII
+def measure_gains(relighter, items, grid=GRID, seed: int = 0, radii=RADII, eps: float | None = None
                   ) -> dict[tuple[float, int], dict[str, float]]:
     """{(gain, radius): {"relit": mean PSNR, "albedo": mean PSNR}}, both clips' gains set to `gain`
-    and both offsets smoothed at `radius` (the model's own filter switched off while measuring).
+    and both offsets smoothed at `radius` (the model's own filter switched off while measuring), the
+    filter's regularisation `eps` (default `upsample.GUIDE_EPS`, what `Relighter` uses).
 
     The relit and albedo outputs of one sampling run do not depend on each other's gain (the gain
     scales each clip's x0), so one run per gain measures both curves."""
     from relight_core.evaluation.harness import RunOptions, brought_back, model_size, relight
     from relight_core.evaluation.metrics import protocol_psnr
-    from relight_core.upsample import smooth_offset
+    from relight_core.upsample import GUIDE_EPS, smooth_offset
 
+    eps = GUIDE_EPS if eps is None else eps
     spec = relighter.spec
     table = {}
     try:
@@ -61,8 +63,8 @@ def measure_gains(relighter, items, grid=GRID, seed: int = 0, radii=RADII
                 small = model_size(relighter, item.input)   # the filter works at the model's size, as in Relighter
                 relit, albedo, _ = relight(relighter, small, item.probe, RunOptions(seed=seed))
                 for radius, (relit_psnr, albedo_psnr) in scores.items():
-                    smooth = (brought_back(item.input, small, smooth_offset(small, relit, radius)),
-                              brought_back(item.input, small, smooth_offset(small, albedo, radius)))
+                    smooth = (brought_back(item.input, small, smooth_offset(small, relit, radius, eps)),
+                              brought_back(item.input, small, smooth_offset(small, albedo, radius, eps)))
                     relit_psnr.append(protocol_psnr(smooth[0], item.target, item.mask))
                     albedo_psnr.append(protocol_psnr(smooth[1], item.albedo, item.mask))
             for radius, (relit_psnr, albedo_psnr) in scores.items():
