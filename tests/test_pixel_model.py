@@ -343,6 +343,11 @@ def test_training_at_a_smaller_size_shrinks_the_packs_as_the_pipeline_shrinks_fr
     from relight_core.upsample import GUIDE_EPS
     assert calibrate.measure_gains(relighter, items, grid=(1.0,), radii=(2,), eps=GUIDE_EPS) == \
         {key: table[key] for key in [(1.0, 2)]}
+    # Several regularisations from one sampling pass: each the same as measured alone, and they differ.
+    filters = calibrate.measure_filters(relighter, items, (1.0,), (2,), (GUIDE_EPS, 1.0))
+    assert set(filters) == {(1.0, 2, GUIDE_EPS), (1.0, 2, 1.0)} and filters[1.0, 2, GUIDE_EPS] == table[1.0, 2]
+    assert filters[1.0, 2, 1.0] == calibrate.measure_gains(relighter, items, grid=(1.0,), radii=(2,), eps=1.0)[1.0, 2]
+    assert filters[1.0, 2, 1.0] != filters[1.0, 2, GUIDE_EPS]
     # At the model's own size the same calibration scores the 16-px floor, another number.
     small_items = [resized(item, 16, 8) for item in load_items(root, "train", 2)]
     small_floor = np.mean([protocol_psnr(item.input, item.target, item.mask) for item in small_items])

@@ -44,31 +44,42 @@ def measure_gains(relighter, items, grid=GRID, seed: int = 0, radii=RADII, eps: 
                   ) -> dict[tuple[float, int], dict[str, float]]:
     """{(gain, radius): {"relit": mean PSNR, "albedo": mean PSNR}}, both clips' gains set to `gain`
     and both offsets smoothed at `radius` (the model's own filter switched off while measuring), the
-    filter's regularisation `eps` (default `upsample.GUIDE_EPS`, what `Relighter` uses).
-
-    The relit and albedo outputs of one sampling run do not depend on each other's gain (the gain
-    scales each clip's x0), so one run per gain measures both curves."""
-    from relight_core.evaluation.harness import RunOptions, brought_back, model_size, relight
-    from relight_core.evaluation.metrics import protocol_psnr
-    from relight_core.upsample import GUIDE_EPS, smooth_offset
+    filter's regularisation `eps` (default `upsample.GUIDE_EPS`, what `Relighter` uses)."""
+    from relight_core.upsample import GUIDE_EPS
 
     eps = GUIDE_EPS if eps is None else eps
+    table = measure_filters(relighter, items, grid, radii, (eps,), seed)
+    return {(gain, radius): scores for (gain, radius, _), scores in table.items()}
+
+
+def measure_filters(relighter, items, grid, radii, epsilons, seed: int = 0
+                    ) -> dict[tuple[float, int, float], dict[str, float]]:
+    """`measure_gains` at several filter regularisations: {(gain, radius, eps): {"relit", "albedo"}}.
+
+    The relit and albedo outputs of one sampling run do not depend on each other's gain (the gain
+    scales each clip's x0) nor on the filter (a post-process), so one run per gain measures every
+    clip, radius and eps."""
+    from relight_core.evaluation.harness import RunOptions, brought_back, model_size, relight
+    from relight_core.evaluation.metrics import protocol_psnr
+    from relight_core.upsample import smooth_offset
+
     spec = relighter.spec
+    filters = [(radius, eps) for radius in radii for eps in epsilons]
     table = {}
     try:
         for gain in grid:
             relighter.spec = replace(spec, residual_gain=(gain, gain), offset_filter=(0, 0))
-            scores = {radius: ([], []) for radius in radii}
+            scores = {f: ([], []) for f in filters}
             for item in items:
                 small = model_size(relighter, item.input)   # the filter works at the model's size, as in Relighter
                 relit, albedo, _ = relight(relighter, small, item.probe, RunOptions(seed=seed))
-                for radius, (relit_psnr, albedo_psnr) in scores.items():
+                for (radius, eps), (relit_psnr, albedo_psnr) in scores.items():
                     smooth = (brought_back(item.input, small, smooth_offset(small, relit, radius, eps)),
                               brought_back(item.input, small, smooth_offset(small, albedo, radius, eps)))
                     relit_psnr.append(protocol_psnr(smooth[0], item.target, item.mask))
                     albedo_psnr.append(protocol_psnr(smooth[1], item.albedo, item.mask))
-            for radius, (relit_psnr, albedo_psnr) in scores.items():
-                table[gain, radius] = {"relit": float(np.mean(relit_psnr)), "albedo": float(np.mean(albedo_psnr))}
+            for (radius, eps), (relit_psnr, albedo_psnr) in scores.items():
+                table[gain, radius, eps] = {"relit": float(np.mean(relit_psnr)), "albedo": float(np.mean(albedo_psnr))}
     finally:
         relighter.spec = spec
     return table
