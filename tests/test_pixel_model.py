@@ -301,6 +301,35 @@ def test_a_zero_head_residual_model_returns_its_input_and_training_resumes(tmp_p
     assert again["steps"] == first["steps"]
 
 
+def test_a_validation_pack_exports_the_best_ema_not_the_last(tmp_path):
+    root = _write_dataset(tmp_path / "data")
+    write_pack(root, "train", tmp_path / "p.npz", lighting_size=8)
+    base = dict(pack=tmp_path / "p.npz", device="cpu", batch=2, width=32, depth=1, num_heads=2, log_every=1000,
+                eval_items=2, eval_steps=1, warmup=1)
+    train(FastConfig(out=tmp_path / "first", minutes=0.01, **base))
+    # From a zero-head residual init ("return the input") at a learning rate that wrecks the weights
+    # within a step: the EMA scored at step 0 stays the best, and that is what is exported.
+    summary = train(FastConfig(out=tmp_path / "wild", minutes=0.03, init=tmp_path / "first" / "model",
+                               zero_head=True, lr=50.0, ema_decay=0.0, val_pack=tmp_path / "p.npz",
+                               val_every_minutes=0.0, val_items=2, recipe=Recipe(residual=True), **base))
+    log = [json.loads(line) for line in (tmp_path / "wild" / "log.jsonl").read_text().splitlines()]
+    vals = [r for r in log if r.get("event") == "val"]
+    assert vals[0]["step"] == 0 and vals[0]["best"] and vals[-1]["step"] == summary["steps"] >= 1
+    assert not any(r["best"] for r in vals[1:]) and summary["selected"]["step"] == 0
+    spec, dit, tok = load_model(tmp_path / "wild" / "model")
+    assert spec.notes["selected"]["step"] == 0 and spec.notes["selected"]["val"]["relit"] == vals[0]["relit"]
+    frames = np.random.default_rng(2).random((1, 32, 32, 3)).astype(np.float32)
+    result = Relighter(spec, dit, tok).relight(RelightRequest(frames=frames, probe=np.ones((16, 32, 3), np.float32)))
+    np.testing.assert_allclose(result.relit, frames, atol=0.02)
+    np.testing.assert_allclose(result.albedo, frames, atol=0.02)
+    # Without the validation pack the same run exports its last EMA, which has moved off the input.
+    train(FastConfig(out=tmp_path / "last", minutes=0.01, init=tmp_path / "first" / "model", zero_head=True,
+                     lr=50.0, ema_decay=0.0, recipe=Recipe(residual=True), **base))
+    spec, dit, tok = load_model(tmp_path / "last" / "model")
+    moved = Relighter(spec, dit, tok).relight(RelightRequest(frames=frames, probe=np.ones((16, 32, 3), np.float32)))
+    assert "selected" not in spec.notes and not np.allclose(moved.relit, frames, atol=0.02)
+
+
 def test_training_at_a_smaller_size_shrinks_the_packs_as_the_pipeline_shrinks_frames(tmp_path):
     from relight_core import media
     from relight_core.evaluation.harness import load_items, resized

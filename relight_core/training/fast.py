@@ -17,7 +17,10 @@ DiT (to continue from the shipped weights; `--zero-head` zeroes its output layer
 trains relit/albedo as offsets from the input (`ModelSpec.residual`), `--p-sigma-max` trains a
 share of samples at σ = 80 (the one-step sampler's call), `--mix-lights` relights a share of items
 between mixtures of their scene's two probes (`make_batch`), `--crop` cuts a share of items as zoomed
-crops of the packs' full-size images (`crop_items`). `<out>/checkpoint.pt` (every
+crops of the packs' full-size images (`crop_items`). `--val-pack` (scenes kept out of training) scores
+the EMA's sampled relit + albedo PSNR on them at step 0, every `--val-every-minutes` and at the end,
+and the best of those EMAs is the one exported (the weights `--init` gave when nothing beats them):
+a long run on few scenes cannot end overfitted. `<out>/checkpoint.pt` (every
 `--checkpoint-every-minutes` and at the end) makes a run started again on the same `--out` resume
 exactly where it stopped. `--pack` takes several packs (e.g. scenes of different dataset seeds),
 trained as one (`pack.load_packs`).
@@ -85,6 +88,9 @@ class FastConfig:
     mix_lights: float = 0.0              # share of items relit between mixtures of their two probes (make_batch)
     crop: float = 0.0                    # share of items cut as a zoomed crop of the full-size pack (crop_items)
     crop_min: float = 0.5                # the smallest crop's side, a fraction of the frame's
+    val_pack: Path | None = None         # held-out scenes: the EMA is scored on them and the best one exported
+    val_every_minutes: float = 1.0       # how often (and at step 0 and the end)
+    val_items: int = 128
     recipe: Recipe = field(default_factory=Recipe)
 
 
@@ -307,9 +313,11 @@ def train(config: FastConfig) -> dict:
     pack = load_packs(config.pack, device)
     full = pack  # crops (--crop) are cut from the images at the pack's size
     test = load_pack(config.test_pack, device) if config.test_pack else None
+    val = load_pack(config.val_pack, device) if config.val_pack else None
     if config.train_size is not None:
         pack = shrink_pack(pack, config.train_size, config.patch)
         test = shrink_pack(test, config.train_size, config.patch) if test is not None else None
+        val = shrink_pack(val, config.train_size, config.patch) if val is not None else None
     tokenizer = PixelTokenizer(config.patch)
     size = int(pack["rgb"].shape[-1])
     lighting_size = int(pack["lighting_size"])
@@ -330,12 +338,14 @@ def train(config: FastConfig) -> dict:
     log = (out / "log.jsonl").open("a")
     checkpoint_path = out / "checkpoint.pt"
     resumed = None
+    best: dict = {}  # --val-pack: the best EMA so far (state, step, scores)
     if checkpoint_path.exists():  # exact resume: weights, EMA, optimizer, RNG, step and time used
         resumed = torch.load(checkpoint_path, map_location=device, weights_only=True)
         dit.load_state_dict(resumed["dit"])
         ema.shadow = {k: v.to(device) for k, v in resumed["ema"].items()}
         optimizer.load_state_dict(resumed["optimizer"])
         generator.set_state(resumed["generator"].cpu())
+        best = resumed.get("best", {})
 
     def write(**record):
         log.write(json.dumps(record) + "\n")
@@ -360,10 +370,27 @@ def train(config: FastConfig) -> dict:
         partial_path = checkpoint_path.with_suffix(".partial")
         torch.save({"dit": dit.state_dict(), "ema": ema.shadow, "optimizer": optimizer.state_dict(),
                     "generator": generator.get_state(), "step": step,
-                    "elapsed": time.time() - train_started}, partial_path)
+                    "elapsed": time.time() - train_started, "best": best}, partial_path)
         partial_path.replace(checkpoint_path)  # atomic: a kill mid-write keeps the previous one
+    def validate():
+        """Score the EMA on the validation pack; keep it when it beats the best so far."""
+        nonlocal best, validated
+        validated = step
+        ema.copy_to(ema_model).eval()
+        scores = sampled_quality(ema_model, val, tokenizer, config.val_items, config.eval_steps, autocast,
+                                 config.recipe.residual)
+        score = scores["relit"] + scores["albedo"]
+        write(event="val", step=step, **scores, best=not best or score > best["score"],
+              seconds=round(time.time() - train_started, 1))
+        if not best or score > best["score"]:
+            best = {"score": score, "step": step, "scores": scores,
+                    "state": {k: v.detach().clone() for k, v in ema_model.state_dict().items()}}
+
     n = len(pack["rgb"])
     last_export = time.time()
+    last_val, validated = time.time(), None
+    if val is not None and not best:
+        validate()
     notes = {"recipe": asdict(config.recipe), "batch": config.batch, "lr": config.lr}
     if config.mix_lights > 0:
         notes["mix_lights"] = config.mix_lights
@@ -418,12 +445,21 @@ def train(config: FastConfig) -> dict:
         if time.time() - last_checkpoint > config.checkpoint_every_minutes * 60:
             save_checkpoint()
             last_checkpoint = time.time()
+        if val is not None and time.time() - last_val > config.val_every_minutes * 60:
+            validate()
+            last_val = time.time()
         if time.time() - last_export > config.export_every_minutes * 60:
             export(out, ema.copy_to(ema_model), config, size, lighting_size, {**notes, "steps": step})
             last_export = time.time()
+    if val is not None and validated != step and best.get("step") != step:
+        validate()
     save_checkpoint()  # a later run on the same --out with more --minutes continues from here
     train_seconds = time.time() - train_started
     ema.copy_to(ema_model).eval()
+    if val is not None:  # export the best EMA the validation scenes saw, not necessarily the last
+        ema_model.load_state_dict(best["state"])
+        notes["selected"] = {"step": best["step"], "val": best["scores"], "val_items": min(config.val_items,
+                                                                                         len(val["rgb"]))}
     residual = config.recipe.residual
     quality = {"train": sampled_quality(ema_model, pack, tokenizer, config.eval_items, config.eval_steps, autocast,
                                         residual)}
@@ -434,6 +470,8 @@ def train(config: FastConfig) -> dict:
                "samples_seen": step * config.batch, "device": str(device), "params": params,
                "sampled_psnr": quality,
                "date": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")}
+    if val is not None:
+        summary["selected"] = notes["selected"]
     write(event="end", **summary)
     (out / "samples.json").write_text(json.dumps(quality, indent=1))
     export(out, ema_model, config, size, lighting_size, {**notes, **summary},
@@ -446,6 +484,9 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--pack", type=Path, nargs="+", required=True,
                         help="one pack, or several (e.g. different dataset seeds) trained as one")
     parser.add_argument("--test-pack", type=Path)
+    parser.add_argument("--val-pack", type=Path,
+                        help="held-out scenes: export the EMA (of those at step 0, every --val-every-minutes and "
+                             "the end) with the best sampled relit + albedo PSNR on them")
     parser.add_argument("--out", type=Path, required=True)
     parser.add_argument("--init", type=Path)
     parser.add_argument("--model-dir", type=Path)
@@ -467,7 +508,7 @@ def main(argv: list[str] | None = None) -> None:
     defaults = FastConfig(pack=Path(), out=Path())
     for name in ("minutes", "device", "batch", "lr", "warmup", "ema_decay", "width", "depth", "num_heads",
                  "seed", "log_every", "eval_items", "eval_steps", "export_every_minutes", "export_steps",
-                 "checkpoint_every_minutes"):
+                 "checkpoint_every_minutes", "val_every_minutes", "val_items"):
         value = getattr(defaults, name)
         parser.add_argument(f"--{name.replace('_', '-')}", type=type(value), default=value)
     parser.add_argument("--p-mean", type=float, default=defaults.recipe.p_mean)
@@ -487,7 +528,7 @@ def main(argv: list[str] | None = None) -> None:
                      clip_weights=(0.0, 1.0, args.pop("albedo_weight")), residual=args.pop("residual"),
                      p_sigma_max=args.pop("p_sigma_max"))
     packs = args["pack"] if isinstance(args["pack"], tuple) else (args["pack"],)
-    for path in packs + ((args["test_pack"],) if args["test_pack"] else ()):
+    for path in packs + tuple(args[k] for k in ("test_pack", "val_pack") if args[k]):
         if not path.is_file():
             parser.error(f"no pack at {path}; make one with python -m relight_core.training.pack")
     try:
