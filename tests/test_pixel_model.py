@@ -330,6 +330,67 @@ def test_a_validation_pack_exports_the_best_ema_not_the_last(tmp_path):
     assert "selected" not in spec.notes and not np.allclose(moved.relit, frames, atol=0.02)
 
 
+def test_pieces_keep_the_newest_unseen_scenes_for_validation_and_each_fits_its_size(tmp_path, capsys):
+    from relight_core.training.pieces import cut_pack
+    from relight_core.training.pieces import main as pieces_main
+
+    root = _write_dataset(tmp_path / "data", scenes=6)
+    write_pack(root, "train", tmp_path / "all.npz", lighting_size=8)
+    write_pack(root, "train", tmp_path / "seen.npz", lighting_size=8, limit=2)      # scenes 0 and 1 trained on
+    whole = load_pack(tmp_path / "all.npz")
+    counts = cut_pack(tmp_path / "all.npz", tmp_path / "out", [100.0, 100.0], seen=tmp_path / "seen.npz", val=1)
+    assert counts == {"val": 1, "p1": 5, "p2": 0, "left": 0} and not (tmp_path / "out" / "p2.npz").exists()
+    val, piece = load_pack(tmp_path / "out" / "val.npz"), load_pack(tmp_path / "out" / "p1.npz")
+    assert val["names"] == [whole["names"][5]]                                    # the newest unseen scene
+    order = (2, 3, 4, 0, 1)                                                       # unseen first, then seen
+    assert piece["names"] == [whole["names"][i] for i in order]
+    for key in ("rgb", "albedo", "mask", "env"):                                  # the scenes themselves, unchanged
+        assert torch.equal(piece[key], whole[key][list(order)]) and torch.equal(val[key], whole[key][[5]])
+    # Pieces of about two scenes' size each: every piece fits, and what does not fit is counted.
+    small = 2.5 * (tmp_path / "all.npz").stat().st_size / 1e6 / 6
+    counts = cut_pack(tmp_path / "all.npz", tmp_path / "tight", [small, small])
+    sizes = [(tmp_path / "tight" / f"p{i}.npz").stat().st_size / 1e6 for i in (1, 2)]
+    assert max(sizes) <= small and counts["p1"] >= 1 and counts["p1"] + counts["p2"] + counts["left"] == 6
+    assert load_packs([tmp_path / "tight" / "p1.npz", tmp_path / "tight" / "p2.npz"])["names"] == \
+        whole["names"][:counts["p1"] + counts["p2"]]
+    with pytest.raises(SystemExit):
+        pieces_main(["--pack", str(tmp_path / "all.npz"), "--out", str(tmp_path / "x"), "--pieces", "50",
+                     "--val", "7"])
+    assert "--val 7 asks for more scenes than the 6" in capsys.readouterr().err
+
+
+def test_pick_keeps_the_best_of_runs_their_mean_and_the_start_on_the_validation_pack(tmp_path):
+    from safetensors.torch import load_file
+
+    from relight_core.training.pick import pick
+
+    root = _write_dataset(tmp_path / "data")
+    write_pack(root, "train", tmp_path / "p.npz", lighting_size=8)
+    base = dict(pack=tmp_path / "p.npz", device="cpu", batch=2, width=32, depth=1, num_heads=2, log_every=1000,
+                eval_items=2, eval_steps=1, warmup=1, minutes=0.01, recipe=Recipe(residual=True))
+    train(FastConfig(out=tmp_path / "start", zero_head=True, lr=0.0, **base))   # "return the input"
+    start = tmp_path / "start" / "model"
+    for name, seed in (("a", 1), ("b", 2)):
+        train(FastConfig(out=tmp_path / name, init=start, lr=1e-2, seed=seed, **base))
+    runs = [tmp_path / "a" / "model", tmp_path / "b" / "model"]
+    result = pick(runs, tmp_path / "p.npz", tmp_path / "out", init=start, items=3, device="cpu",
+                  model_dir=tmp_path / "picked")
+    scores = result["scores"]
+    assert set(scores) == {str(runs[0]), str(runs[1]), "mean", "mean with init", "init"}
+    assert result["best"] == max(scores, key=lambda n: scores[n]["relit"] + scores[n]["albedo"])
+    merged = merge_shards(tmp_path / "out", tmp_path / "out" / "config.json", tmp_path / "merged")
+    picked = load_file(str(tmp_path / "picked" / DIT_FILE))
+    assert all(torch.equal(v, picked[k]) for k, v in load_file(str(merged / DIT_FILE)).items())
+    if result["best"] == str(runs[0]):  # the shards hold the winner's weights
+        assert all(torch.equal(v, picked[k]) for k, v in load_file(str(runs[0] / DIT_FILE)).items())
+    spec = json.loads((tmp_path / "out" / "config.json").read_text())
+    assert spec["notes"]["picked"]["from"] == result["best"] and spec["residual"]
+    assert json.loads((tmp_path / "out" / "pick.json").read_text())["best"] == result["best"]
+    # A run that changed nothing ties with its start: the start is kept.
+    same = pick([start], tmp_path / "p.npz", tmp_path / "same", init=start, items=3, device="cpu")
+    assert same["best"] == "init" and len(set(map(str, same["scores"].values()))) == 1
+
+
 def test_training_at_a_smaller_size_shrinks_the_packs_as_the_pipeline_shrinks_frames(tmp_path):
     from relight_core import media
     from relight_core.evaluation.harness import load_items, resized

@@ -278,6 +278,16 @@ def export(out: Path, dit: JointDiT, config: FastConfig, size: int, lighting_siz
         Path(model_dir).mkdir(parents=True, exist_ok=True)
         save_file(state, Path(model_dir) / DIT_FILE)
         (Path(model_dir) / CONFIG_FILE).write_text(config_text)
+    write_shards(state, out)
+    return Path(model_dir or out)
+
+
+def write_shards(state: dict[str, torch.Tensor], out: Path) -> int:
+    """A state dict as `dit-shard-<i>.safetensors` files of ≤ SHARD_BYTES each in `out` (what a device
+    hands back is ≤ 16 MiB a file); `merge_shards` joins them, so shards an earlier, larger state left
+    there go first. Returns the shard count."""
+    for old in Path(out).glob("dit-shard-*.safetensors"):
+        old.unlink()
     shards: list[dict] = [{}]
     used = 0
     for name, value in state.items():
@@ -285,11 +295,11 @@ def export(out: Path, dit: JointDiT, config: FastConfig, size: int, lighting_siz
         if shards[-1] and used + nbytes > SHARD_BYTES:
             shards.append({})
             used = 0
-        shards[-1][name] = value
+        shards[-1][name] = value.contiguous()
         used += nbytes
     for i, shard in enumerate(shards):
         save_file(shard, Path(out) / f"dit-shard-{i}.safetensors")
-    return Path(model_dir or out)
+    return len(shards)
 
 
 def merge_shards(shard_dir: Path, config_json: Path, folder: Path) -> Path:

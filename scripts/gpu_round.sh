@@ -1,0 +1,36 @@
+#!/usr/bin/env bash
+# One training round on a GPU machine, within a time budget: a run per learning rate in $LRS, side by
+# side on the one GPU, each from $INIT on every pack in $PACKS and keeping its best EMA on the
+# held-out $VAL scenes (fast --val-pack), then training.pick keeps the best of the runs, their mean
+# and their mean with $INIT — as a model folder and ≤ 15 MB shards in $OUT, with the runs' logs.
+#   PACKS="/tmp/packs/*.npz" VAL=.dev/last/val.npz TEST=.dev/last/test.npz INIT=.dev/last/init \
+#     bash scripts/gpu_round.sh 8.2
+# Packs too large for one call travel in pieces (python -m relight_core.training.pieces; docs/TRAINING.md).
+set -uo pipefail
+cd "$(dirname "$0")/.."
+export PYTHONUNBUFFERED=1 PYTHONPATH=$PWD
+minutes=${1:?usage: gpu_round.sh MINUTES}
+python=${PYTHON:-python3}
+out=${OUT:-runs/gpu-round}
+runs=${RUNS_DIR:-/tmp/gpu-round}
+init=${INIT:-models/default}
+mkdir -p "$out" "$runs"
+# shellcheck disable=SC2086  # $PACKS is a glob, expanded here
+packs=$(ls ${PACKS:-/tmp/packs/*.npz})
+echo "packs: $packs"
+"$python" -c "import torch; print('torch', torch.__version__, 'cuda', torch.cuda.is_available())"
+seed=70
+models=()
+for lr in ${LRS:-2e-4 1e-4}; do
+  # shellcheck disable=SC2086
+  "$python" -m relight_core.training.fast --pack $packs ${TEST:+--test-pack "$TEST"} --val-pack "$VAL" \
+    --device "${DEVICE:-cuda}" --minutes "$minutes" --batch "${BATCH:-128}" --lr "$lr" --seed "$seed" --warmup 100 \
+    --ema-decay 0.999 --init "$init" --residual --p-sigma-max 0.9 --albedo-weight 0.5 --mix-lights 0.5 \
+    --eval-steps 1 --eval-items 32 --val-items 128 --val-every-minutes 0.5 --export-every-minutes 1000 \
+    --checkpoint-every-minutes 1000 --log-every 50 --out "$runs/lr-$lr" > "$out/log-lr-$lr.txt" 2>&1 &
+  models+=("$runs/lr-$lr/model")
+  seed=$((seed + 1))
+done
+wait
+"$python" -m relight_core.training.pick "${models[@]}" --val "$VAL" --init "$init" --out "$out" \
+  --device "${DEVICE:-cuda}"
