@@ -322,6 +322,12 @@ def test_a_validation_pack_exports_the_best_ema_not_the_last(tmp_path):
     result = Relighter(spec, dit, tok).relight(RelightRequest(frames=frames, probe=np.ones((16, 32, 3), np.float32)))
     np.testing.assert_allclose(result.relit, frames, atol=0.02)
     np.testing.assert_allclose(result.albedo, frames, atol=0.02)
+    # Started again on the same folder it resumes from its checkpoint, best EMA included: its time
+    # spent, it takes no step and still exports the step-0 weights.
+    again = train(FastConfig(out=tmp_path / "wild", minutes=0.03, init=tmp_path / "first" / "model",
+                             zero_head=True, lr=50.0, ema_decay=0.0, val_pack=tmp_path / "p.npz",
+                             val_every_minutes=0.0, val_items=2, recipe=Recipe(residual=True), **base))
+    assert again["steps"] == summary["steps"] and again["selected"]["step"] == 0
     # Without the validation pack the same run exports its last EMA, which has moved off the input.
     train(FastConfig(out=tmp_path / "last", minutes=0.01, init=tmp_path / "first" / "model", zero_head=True,
                      lr=50.0, ema_decay=0.0, recipe=Recipe(residual=True), **base))

@@ -382,6 +382,7 @@ def train(config: FastConfig) -> dict:
                     "generator": generator.get_state(), "step": step,
                     "elapsed": time.time() - train_started, "best": best}, partial_path)
         partial_path.replace(checkpoint_path)  # atomic: a kill mid-write keeps the previous one
+
     def validate():
         """Score the EMA on the validation pack; keep it when it beats the best so far."""
         nonlocal best, validated
