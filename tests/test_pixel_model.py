@@ -359,6 +359,13 @@ def test_pieces_keep_the_newest_unseen_scenes_for_validation_and_each_fits_its_s
     assert max(sizes) <= small and counts["p1"] >= 1 and counts["p1"] + counts["p2"] + counts["left"] == 6
     assert load_packs([tmp_path / "tight" / "p1.npz", tmp_path / "tight" / "p2.npz"])["names"] == \
         whole["names"][:counts["p1"] + counts["p2"]]
+    # Several --seen packs: their scenes together count as trained on.
+    write_pack(root, "train", tmp_path / "first4.npz", lighting_size=8, limit=4)
+    pieces_main(["--pack", str(tmp_path / "all.npz"), "--out", str(tmp_path / "two"), "--pieces", "50",
+                 "--seen", str(tmp_path / "seen.npz"), str(tmp_path / "first4.npz"), "--val", "1"])
+    assert capsys.readouterr().out.split() == ["val", "1", "p1", "5", "left", "0"]
+    assert load_pack(tmp_path / "two" / "val.npz")["names"] == [whole["names"][5]]
+    assert load_pack(tmp_path / "two" / "p1.npz")["names"] == [whole["names"][i] for i in (4, 0, 1, 2, 3)]
     with pytest.raises(SystemExit):
         pieces_main(["--pack", str(tmp_path / "all.npz"), "--out", str(tmp_path / "x"), "--pieces", "50",
                      "--val", "7"])

@@ -3,9 +3,10 @@
 A GPU machine reached through a device tool takes ≤ 64 MiB a call (the repository's own files and the
 initial weights included), so a few thousand scenes travel in several pieces (`p1.npz`, `p2.npz`,
 …, each ≤ its `--pieces` size in MB), gathered again there with `fast --pack p1.npz p2.npz …`.
-`--val N` keeps the last N scenes the `--seen` pack does not hold (the newest rendered, never trained
-on) out of every piece, as `val.npz` for `fast --val-pack`; scenes the `--seen` pack holds go after
-the unseen ones, so they fill only the room left.
+`--val N` keeps the last N scenes the `--seen` packs do not hold (the newest rendered, never trained
+on) out of every piece, as `val.npz` for `fast --val-pack`; scenes a `--seen` pack holds go after
+the unseen ones, so they fill only the room left. `--seen` takes the packs rounds before trained on
+(their scene names are what count).
 
     python -m relight_core.training.pieces --pack cache/train.npz --seen cache/trained-on.npz \
         --val 128 --pieces 61 61 22 --out .dev/pieces
@@ -32,14 +33,16 @@ def _write_subset(z, path: Path, indices: list[int]) -> float:
     return path.stat().st_size / 1e6
 
 
-def cut_pack(pack: Path, out: Path, pieces_mb: list[float], seen: Path | None = None, val: int = 0) -> dict:
+def cut_pack(pack: Path, out: Path, pieces_mb: list[float], seen: Path | list[Path] | None = None,
+             val: int = 0) -> dict:
     """Write `out/val.npz` (if `val`) and `out/p<i>.npz`, each at most `pieces_mb[i-1]` MB; returns the
     scene counts ({"val": n, "p1": n, …, "left": n not placed})."""
     out.mkdir(parents=True, exist_ok=True)
     with np.load(pack, allow_pickle=False) as z:
         z = {k: z[k] for k in z.files}
     names = [str(n) for n in z["names"]]
-    held = {str(n) for n in np.load(seen, allow_pickle=False)["names"]} if seen else set()
+    seen = [] if seen is None else [seen] if isinstance(seen, (str, Path)) else list(seen)
+    held = {str(n) for path in seen for n in np.load(path, allow_pickle=False)["names"]}
     unseen = [i for i, name in enumerate(names) if name not in held]
     if val > len(unseen):
         raise ValueError(f"--val {val} asks for more scenes than the {len(unseen)} not in the --seen pack")
@@ -88,11 +91,12 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--pack", type=Path, required=True)
     parser.add_argument("--out", type=Path, required=True)
     parser.add_argument("--pieces", type=float, nargs="+", required=True, help="each piece's largest size, MB")
-    parser.add_argument("--seen", type=Path, help="a pack of scenes already trained on: they go last, never in val")
+    parser.add_argument("--seen", type=Path, nargs="+", default=[],
+                        help="packs of scenes already trained on: those scenes go last, never in val")
     parser.add_argument("--val", type=int, default=0, help="scenes kept out as val.npz (the last unseen ones)")
     args = parser.parse_args(argv)
-    for path in (args.pack, args.seen):
-        if path is not None and not path.is_file():
+    for path in (args.pack, *args.seen):
+        if not path.is_file():
             parser.error(f"no pack at {path}; make one with python -m relight_core.training.pack")
     try:
         counts = cut_pack(args.pack, args.out, args.pieces, args.seen, args.val)
