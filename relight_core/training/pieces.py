@@ -21,6 +21,7 @@ import numpy as np
 
 from relight_core.training.pack import STREAMS
 
+
 def _write_subset(z, path: Path, indices: list[int]) -> float:
     """The pack `z`'s scenes `indices` (in that order) as a pack at `path`; its size in MB."""
     offsets, jpeg, n = z["offsets"], z["jpeg"], len(STREAMS)
@@ -45,7 +46,7 @@ def cut_pack(pack: Path, out: Path, pieces_mb: list[float], seen: Path | list[Pa
     held = {str(n) for path in seen for n in np.load(path, allow_pickle=False)["names"]}
     unseen = [i for i, name in enumerate(names) if name not in held]
     if val > len(unseen):
-        raise ValueError(f"--val {val} asks for more scenes than the {len(unseen)} not in the --seen pack")
+        raise ValueError(f"--val {val} asks for more scenes than the {len(unseen)} not in the --seen packs")
     kept = unseen[len(unseen) - val:] if val else []
     order = unseen[:len(unseen) - val] + [i for i, name in enumerate(names) if name in held]
     per_scene = Path(pack).stat().st_size / 1e6 / max(len(names), 1)   # the first guess at how many fit
