@@ -23,7 +23,7 @@ from PIL import Image
 from torch import nn
 
 from relight_core import media
-from relight_core.data.dataset import write_frame, write_meta
+from relight_core.data.dataset import write_frame, write_manifest, write_meta
 from relight_core.dit import DiTConfig
 
 REPO = Path(__file__).resolve().parent.parent
@@ -318,3 +318,19 @@ def main_capturing(argv: list[str]) -> tuple[int, str, str]:
     with contextlib.redirect_stdout(stdout), contextlib.redirect_stderr(stderr):
         code = main(argv)
     return code, stdout.getvalue(), stderr.getvalue()
+
+
+def write_pack_dataset(root, scenes=3, size=32, seed=0):
+    """A train split of random scenes under two lights (frame 0, mask, probes): what `training.pack` packs."""
+    rng = np.random.default_rng(seed)
+    split = root / "train"
+    for i in range(scenes):
+        sample = split / f"scene_{i:06d}"
+        for name in ("rgb0", "rgb1", "albedo"):
+            write_frame(sample, name, 0, rng.random((size, size, 3)).astype(np.float32))
+        write_frame(sample, "mask", 0, (rng.random((size, size)) > 0.5).astype(np.float32))
+        for light in (0, 1):
+            write_frame(sample, f"env{light}", 0, rng.random((size, size, 3)).astype(np.float32) * 5)
+        write_meta(sample, {"kind": "synthetic", "frames": 1, "height": size, "width": size, "lights": 2})
+    write_manifest(split)
+    return root

@@ -11,11 +11,11 @@ from relight_core.checkpoint import REPO_ROOT, load_model
 from relight_core.training.fast import merge_shards
 from relight_core.training.pack import write_pack
 from relight_core.training.pieces import cut_pack
-from tests.test_pixel_model import _write_dataset
+from tests.factory import write_pack_dataset
 
 
 def test_a_gpu_round_runs_its_learning_rates_and_hands_back_the_pick(tmp_path):
-    root = _write_dataset(tmp_path / "data", scenes=5)
+    root = write_pack_dataset(tmp_path / "data", scenes=5)
     write_pack(root, "train", tmp_path / "all.npz", lighting_size=8)
     counts = cut_pack(tmp_path / "all.npz", tmp_path / "pieces", [1.0, 1.0], val=2)
     assert counts["val"] == 2 and counts["p1"] == 3

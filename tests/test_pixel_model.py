@@ -11,7 +11,6 @@ import torch
 from relight_core import lighting
 from relight_core.checkpoint import DIT_FILE, TOKENIZER_FILE, ModelSpec, load_model
 from relight_core.colour import colour_science
-from relight_core.data.dataset import write_frame, write_manifest, write_meta
 from relight_core.dit import CHANNELS, DiTConfig, JointDiT, assemble_inputs, channel_layout, pack_lighting
 from relight_core.errors import InputError
 from relight_core.pipeline import Relighter, RelightRequest
@@ -20,6 +19,7 @@ from relight_core.training.recipe import Recipe
 from relight_core.training.fast import FastConfig, light_mix, main, make_batch, merge_shards, train
 from relight_core.training.pack import load_pack, load_packs, write_pack
 from relight_core.upsample import smooth_offset
+from tests.factory import write_pack_dataset
 
 
 def test_pixel_tokenizer_is_lossless_and_spatially_local():
@@ -69,25 +69,10 @@ def test_lowpass_panorama_keeps_energy_and_is_identity_at_full_size():
     assert lighting.lowpass_panorama(pan, 64) is pan and lighting.lowpass_panorama(pan, None) is pan
 
 
-def _write_dataset(root, scenes=3, size=32, seed=0):
-    rng = np.random.default_rng(seed)
-    split = root / "train"
-    for i in range(scenes):
-        sample = split / f"scene_{i:06d}"
-        for name in ("rgb0", "rgb1", "albedo"):
-            write_frame(sample, name, 0, rng.random((size, size, 3)).astype(np.float32))
-        write_frame(sample, "mask", 0, (rng.random((size, size)) > 0.5).astype(np.float32))
-        for light in (0, 1):
-            write_frame(sample, f"env{light}", 0, rng.random((size, size, 3)).astype(np.float32) * 5)
-        write_meta(sample, {"kind": "synthetic", "frames": 1, "height": size, "width": size, "lights": 2})
-    write_manifest(split)
-    return root
-
-
 def test_pack_round_trip(tmp_path):
     from relight_core.data.files import read_exr, read_image
 
-    root = _write_dataset(tmp_path / "data")
+    root = write_pack_dataset(tmp_path / "data")
     count = write_pack(root, "train", tmp_path / "p.npz", lighting_size=8)
     pack = load_pack(tmp_path / "p.npz")
     assert count == 3 and pack["rgb"].shape == (3, 2, 3, 32, 32) and pack["env"].shape == (3, 2, 8, 8, 3)
@@ -100,8 +85,8 @@ def test_pack_round_trip(tmp_path):
 
 
 def test_several_packs_train_as_one_and_must_match(tmp_path, capsys):
-    write_pack(_write_dataset(tmp_path / "a", scenes=3), "train", tmp_path / "a.npz", lighting_size=8)
-    write_pack(_write_dataset(tmp_path / "b", scenes=2, seed=1), "train", tmp_path / "b.npz", lighting_size=8)
+    write_pack(write_pack_dataset(tmp_path / "a", scenes=3), "train", tmp_path / "a.npz", lighting_size=8)
+    write_pack(write_pack_dataset(tmp_path / "b", scenes=2, seed=1), "train", tmp_path / "b.npz", lighting_size=8)
     a, b = load_pack(tmp_path / "a.npz"), load_pack(tmp_path / "b.npz")
     both = load_packs([tmp_path / "a.npz", tmp_path / "b.npz"])
     assert both["rgb"].shape == (5, 2, 3, 32, 32) and both["lighting_size"] == 8 and len(both["names"]) == 5
@@ -110,7 +95,7 @@ def test_several_packs_train_as_one_and_must_match(tmp_path, capsys):
     assert not torch.equal(both["rgb"][0], both["rgb"][3])                  # the second pack's own scenes
     single = load_packs(tmp_path / "a.npz")
     assert all(torch.equal(single[k], a[k]) for k in ("rgb", "albedo", "mask", "env"))
-    write_pack(_write_dataset(tmp_path / "c", scenes=2, size=16), "train", tmp_path / "c.npz", lighting_size=8)
+    write_pack(write_pack_dataset(tmp_path / "c", scenes=2, size=16), "train", tmp_path / "c.npz", lighting_size=8)
     with pytest.raises(ValueError, match="c.npz holds \\(16, 16\\) px images"):
         load_packs([tmp_path / "a.npz", tmp_path / "c.npz"])
     # The trainer's --pack takes several: a run on both sees all five scenes.
@@ -131,7 +116,7 @@ def test_several_packs_train_as_one_and_must_match(tmp_path, capsys):
 
 
 def test_batches_flip_image_and_probe_together(tmp_path):
-    write_pack(_write_dataset(tmp_path / "data"), "train", tmp_path / "p.npz", lighting_size=8)
+    write_pack(write_pack_dataset(tmp_path / "data"), "train", tmp_path / "p.npz", lighting_size=8)
     pack = load_pack(tmp_path / "p.npz")
     tok = PixelTokenizer(8)
     idx, target = torch.tensor([0, 2]), torch.tensor([1, 0])
@@ -149,7 +134,7 @@ def test_batches_flip_image_and_probe_together(tmp_path):
 
 
 def test_batches_relight_between_mixtures_of_the_two_probes_in_linear_light(tmp_path):
-    write_pack(_write_dataset(tmp_path / "data"), "train", tmp_path / "p.npz", lighting_size=8)
+    write_pack(write_pack_dataset(tmp_path / "data"), "train", tmp_path / "p.npz", lighting_size=8)
     pack = load_pack(tmp_path / "p.npz")
     tok = PixelTokenizer(8)
     idx, target, no_flip = torch.tensor([0, 2]), torch.tensor([1, 0]), torch.tensor([False, False])
@@ -202,7 +187,7 @@ def test_mix_and_crop_shares_outside_their_range_are_refused_before_anything_loa
 
 
 def test_fast_training_exports_a_model_the_relighter_runs(tmp_path):
-    root = _write_dataset(tmp_path / "data")
+    root = write_pack_dataset(tmp_path / "data")
     write_pack(root, "train", tmp_path / "p.npz", lighting_size=8)
     config = FastConfig(pack=tmp_path / "p.npz", out=tmp_path / "run", minutes=0.02, device="cpu", batch=2,
                         width=32, depth=1, num_heads=2, log_every=1, eval_items=2, eval_steps=2, warmup=1)
@@ -255,7 +240,7 @@ def test_a_residual_models_offset_filter_smooths_what_it_changed_and_scales_with
 
 
 def test_a_zero_head_residual_model_returns_its_input_and_training_resumes(tmp_path):
-    root = _write_dataset(tmp_path / "data")
+    root = write_pack_dataset(tmp_path / "data")
     write_pack(root, "train", tmp_path / "p.npz", lighting_size=8)
     base = dict(pack=tmp_path / "p.npz", device="cpu", batch=2, width=32, depth=1, num_heads=2, log_every=1,
                 eval_items=2, eval_steps=1, warmup=1, checkpoint_every_minutes=0.0)
@@ -302,7 +287,7 @@ def test_a_zero_head_residual_model_returns_its_input_and_training_resumes(tmp_p
 
 
 def test_a_validation_pack_exports_the_best_ema_not_the_last(tmp_path):
-    root = _write_dataset(tmp_path / "data")
+    root = write_pack_dataset(tmp_path / "data")
     write_pack(root, "train", tmp_path / "p.npz", lighting_size=8)
     base = dict(pack=tmp_path / "p.npz", device="cpu", batch=2, width=32, depth=1, num_heads=2, log_every=1000,
                 eval_items=2, eval_steps=1, warmup=1)
@@ -340,7 +325,7 @@ def test_pieces_keep_the_newest_unseen_scenes_for_validation_and_each_fits_its_s
     from relight_core.training.pieces import cut_pack
     from relight_core.training.pieces import main as pieces_main
 
-    root = _write_dataset(tmp_path / "data", scenes=6)
+    root = write_pack_dataset(tmp_path / "data", scenes=6)
     write_pack(root, "train", tmp_path / "all.npz", lighting_size=8)
     write_pack(root, "train", tmp_path / "seen.npz", lighting_size=8, limit=2)      # scenes 0 and 1 trained on
     whole = load_pack(tmp_path / "all.npz")
@@ -372,12 +357,12 @@ def test_pieces_keep_the_newest_unseen_scenes_for_validation_and_each_fits_its_s
     assert "--val 7 asks for more scenes than the 6" in capsys.readouterr().err
 
 
-def test_pick_keeps_the_best_of_runs_their_mean_and_the_start_on_the_validation_pack(tmp_path):
+def test_pick_keeps_the_best_of_runs_their_mean_and_the_start_on_the_validation_pack(tmp_path, capsys):
     from safetensors.torch import load_file
 
     from relight_core.training.pick import pick
 
-    root = _write_dataset(tmp_path / "data")
+    root = write_pack_dataset(tmp_path / "data")
     write_pack(root, "train", tmp_path / "p.npz", lighting_size=8)
     base = dict(pack=tmp_path / "p.npz", device="cpu", batch=2, width=32, depth=1, num_heads=2, log_every=1000,
                 eval_items=2, eval_steps=1, warmup=1, minutes=0.01, recipe=Recipe(residual=True))
@@ -402,6 +387,14 @@ def test_pick_keeps_the_best_of_runs_their_mean_and_the_start_on_the_validation_
     # A run that changed nothing ties with its start: the start is kept.
     same = pick([start], tmp_path / "p.npz", tmp_path / "same", init=start, items=3, device="cpu")
     assert same["best"] == "init" and len(set(map(str, same["scores"].values()))) == 1
+    # Its command line refuses a start folder without weights in one sentence, before loading anything.
+    from relight_core.training.pick import main as pick_main
+
+    with pytest.raises(SystemExit):
+        pick_main([str(runs[0]), "--val", str(tmp_path / "p.npz"), "--out", str(tmp_path / "no"),
+                   "--init", str(tmp_path / "nowhere")])
+    assert f"--init {tmp_path / 'nowhere'} holds no {DIT_FILE}" in capsys.readouterr().err
+    assert not (tmp_path / "no").exists()
 
 
 def test_training_at_a_smaller_size_shrinks_the_packs_as_the_pipeline_shrinks_frames(tmp_path):
@@ -411,7 +404,7 @@ def test_training_at_a_smaller_size_shrinks_the_packs_as_the_pipeline_shrinks_fr
     from relight_core.training import calibrate
     from relight_core.training.fast import shrink_pack
 
-    root = _write_dataset(tmp_path / "data", size=32)
+    root = write_pack_dataset(tmp_path / "data", size=32)
     write_pack(root, "train", tmp_path / "p.npz", lighting_size=8)
     pack = load_pack(tmp_path / "p.npz")
     small = shrink_pack(pack, 16)
@@ -462,7 +455,7 @@ def test_training_at_a_smaller_size_shrinks_the_packs_as_the_pipeline_shrinks_fr
 def test_crops_zoom_into_the_full_size_images_and_keep_the_probes(tmp_path):
     from relight_core.training.fast import crop_draws, crop_items, shrink_pack
 
-    write_pack(_write_dataset(tmp_path / "data", size=32), "train", tmp_path / "p.npz", lighting_size=8)
+    write_pack(write_pack_dataset(tmp_path / "data", size=32), "train", tmp_path / "p.npz", lighting_size=8)
     full = load_pack(tmp_path / "p.npz")
     small = shrink_pack(full, 16)
     idx = torch.tensor([2, 0, 2])

@@ -46,6 +46,7 @@ from relight_core.checkpoint import CONFIG_FILE, DIT_FILE, ModelSpec
 from relight_core.colour import linear_to_srgb, srgb_to_linear
 from relight_core.diffusion import ConditionedDenoiser, EDMPrecond, get_sigmas_karras, sample_res2ab
 from relight_core.dit import DiTConfig, JointDiT, pack_lighting
+from relight_core.devices import resolve_device
 from relight_core.precision import resolve_precision
 from relight_core.tokenizer import PixelTokenizer
 from relight_core.training.loop import EMA, make_optimizer
@@ -264,6 +265,12 @@ def sampled_quality(dit: JointDiT, pack: dict, tokenizer: PixelTokenizer, items:
     return {k: round(float(torch.cat(v).mean()), 3) for k, v in out.items()}
 
 
+def selection_score(scores: dict[str, float]) -> float:
+    """What "better" means when choosing among models on held-out scenes (`--val-pack`, `training.pick`):
+    sampled relit + albedo PSNR (`sampled_quality`'s scores)."""
+    return scores["relit"] + scores["albedo"]
+
+
 def export(out: Path, dit: JointDiT, config: FastConfig, size: int, lighting_size: int, notes: dict,
            model_dir: Path | None = None) -> Path:
     """Transport shards + config.json in `out`; with `model_dir`, also the model folder there
@@ -314,7 +321,7 @@ def merge_shards(shard_dir: Path, config_json: Path, folder: Path) -> Path:
 
 
 def train(config: FastConfig) -> dict:
-    device = torch.device(("cuda" if torch.cuda.is_available() else "cpu") if config.device == "auto" else config.device)
+    device = resolve_device(None if config.device == "auto" else config.device)
     started = time.time()
     torch.manual_seed(config.seed)
     if device.type == "cuda":
@@ -390,7 +397,7 @@ def train(config: FastConfig) -> dict:
         ema.copy_to(ema_model).eval()
         scores = sampled_quality(ema_model, val, tokenizer, config.val_items, config.eval_steps, autocast,
                                  config.recipe.residual)
-        score = scores["relit"] + scores["albedo"]
+        score = selection_score(scores)
         write(event="val", step=step, **scores, best=not best or score > best["score"],
               seconds=round(time.time() - train_started, 1))
         if not best or score > best["score"]:

@@ -66,13 +66,20 @@ def write_pack(data: Path, split: str, out: Path, lighting_size: int = 32, limit
         pans = torch.stack([torch.from_numpy(read_exr(root / f"env{light}" / f"{name}.exr")) for light in (0, 1)])
         envs.append(lighting.downsample_panorama(pans, lighting_size).numpy().astype(np.float16))
         names.append(sample["path"])
-    sizes = np.array([len(b) for b in blobs], np.int64)
     height, width = read_image(split_dir / samples[0]["path"] / "rgb0" / f"{frame:04d}.png").shape[:2]
     out.parent.mkdir(parents=True, exist_ok=True)
-    np.savez_compressed(out, jpeg=np.frombuffer(b"".join(blobs), np.uint8), offsets=np.concatenate([[0], np.cumsum(sizes)]),
-             mask=np.stack(masks), env=np.stack(envs), size=np.array([height, width]),
-             lighting_size=np.array(lighting_size), names=np.array(names))
+    save_pack(out, blobs, np.stack(masks), np.stack(envs), (height, width), lighting_size, names)
     return len(samples)
+
+
+def save_pack(out: Path, blobs: list, mask: np.ndarray, env: np.ndarray, size, lighting_size: int,
+              names) -> None:
+    """Write a pack: `blobs` the JPEGs of every scene's STREAMS in order (bytes or uint8 arrays), `mask`
+    bit-packed [N, ⌈H·W/8⌉], `env` [N,2,s,s,3] fp16, `size` (H, W), `names` one per scene."""
+    sizes = np.array([len(b) for b in blobs], np.int64)
+    jpeg = np.concatenate([np.frombuffer(b, np.uint8) for b in blobs]) if blobs else np.zeros(0, np.uint8)
+    np.savez_compressed(out, jpeg=jpeg, offsets=np.concatenate([[0], np.cumsum(sizes)]), mask=mask, env=env,
+                        size=np.array(size), lighting_size=np.array(lighting_size), names=np.array(names))
 
 
 def load_pack(path: Path, device: str | torch.device = "cpu") -> dict[str, torch.Tensor]:

@@ -19,8 +19,9 @@ import torch
 from safetensors.torch import load_file, save_file
 
 from relight_core.checkpoint import CONFIG_FILE, DIT_FILE, load_model
+from relight_core.devices import resolve_device
 from relight_core.tokenizer import build_tokenizer
-from relight_core.training.fast import sampled_quality, write_shards
+from relight_core.training.fast import sampled_quality, selection_score, write_shards
 from relight_core.training.pack import load_pack
 
 
@@ -47,7 +48,7 @@ def pick(models: list[Path], val: Path, out: Path, init: Path | None = None, ite
     {"best": name, "scores": {name: {relit, albedo, floor, margin}}}."""
     if not models:
         raise ValueError("no model folder to pick from")
-    dev = torch.device(("cuda" if torch.cuda.is_available() else "cpu") if device == "auto" else device)
+    dev = resolve_device(None if device == "auto" else device)
     spec, dit, _ = load_model(models[0], dev)
     if spec.tokenizer.get("type") != "pixel":
         raise ValueError(f"{models[0]} is not a pixel-tokenizer model; pick scores the default model's kind")
@@ -59,7 +60,7 @@ def pick(models: list[Path], val: Path, out: Path, init: Path | None = None, ite
         scores[name] = sampled_quality(dit.eval(), pack, tokenizer, items, spec.steps, dev.type == "cuda",
                                        spec.residual)
         print(name, scores[name], flush=True)
-    best = max(scores, key=lambda n: (scores[n]["relit"] + scores[n]["albedo"], n == "init"))
+    best = max(scores, key=lambda n: (selection_score(scores[n]), n == "init"))
     state = {k: v.to(torch.bfloat16).contiguous() for k, v in states[best].items()}
     config = json.loads((models[0] / CONFIG_FILE).read_text())
     config.setdefault("notes", {})["picked"] = {"from": best, "val": scores[best], "val_items": min(items, len(pack["rgb"]))}
@@ -90,6 +91,8 @@ def main(argv: list[str] | None = None) -> None:
         print(f"skipping {missing}: no {DIT_FILE} there (the run did not finish)")
     if not args.val.is_file():
         parser.error(f"no pack at {args.val}")
+    if args.init is not None and not (args.init / DIT_FILE).is_file():
+        parser.error(f"--init {args.init} holds no {DIT_FILE}; give the model folder the runs started from")
     try:
         result = pick(present, args.val, args.out, args.init, args.items, args.device, args.model_dir)
     except ValueError as error:

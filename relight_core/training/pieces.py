@@ -19,18 +19,15 @@ from pathlib import Path
 
 import numpy as np
 
-from relight_core.training.pack import STREAMS
+from relight_core.training.pack import STREAMS, save_pack
 
 
 def _write_subset(z, path: Path, indices: list[int]) -> float:
     """The pack `z`'s scenes `indices` (in that order) as a pack at `path`; its size in MB."""
     offsets, jpeg, n = z["offsets"], z["jpeg"], len(STREAMS)
-    blobs = [jpeg[offsets[n * i]:offsets[n * i + n]] for i in indices]
-    sizes = np.concatenate([np.diff(offsets[n * i:n * i + n + 1]) for i in indices]) if indices else np.zeros(0, np.int64)
-    np.savez_compressed(path, jpeg=np.concatenate(blobs) if blobs else np.zeros(0, np.uint8),
-                        offsets=np.concatenate([[0], np.cumsum(sizes)]), mask=z["mask"][indices],
-                        env=z["env"][indices], size=z["size"], lighting_size=z["lighting_size"],
-                        names=z["names"][indices])
+    blobs = [jpeg[offsets[n * i + k]:offsets[n * i + k + 1]] for i in indices for k in range(n)]
+    save_pack(path, blobs, z["mask"][indices], z["env"][indices], tuple(z["size"]), int(z["lighting_size"]),
+              z["names"][indices])
     return path.stat().st_size / 1e6
 
 
