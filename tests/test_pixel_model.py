@@ -186,6 +186,17 @@ def test_mix_and_crop_shares_outside_their_range_are_refused_before_anything_loa
     assert not (tmp_path / "run").exists()
 
 
+def test_fast_training_on_a_device_this_machine_lacks_says_so_in_one_sentence(tmp_path, capsys):
+    if torch.cuda.is_available():
+        pytest.skip("this machine has a CUDA GPU")
+    write_pack(write_pack_dataset(tmp_path / "data"), "train", tmp_path / "p.npz", lighting_size=8)
+    with pytest.raises(SystemExit) as exit_info:
+        main(["--pack", str(tmp_path / "p.npz"), "--out", str(tmp_path / "run"), "--device", "cuda"])
+    assert exit_info.value.code == 2
+    assert "The device 'cuda' was asked for, but this machine has no usable CUDA GPU" in capsys.readouterr().err
+    assert not (tmp_path / "run").exists()
+
+
 def test_fast_training_exports_a_model_the_relighter_runs(tmp_path):
     root = write_pack_dataset(tmp_path / "data")
     write_pack(root, "train", tmp_path / "p.npz", lighting_size=8)

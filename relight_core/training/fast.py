@@ -47,6 +47,7 @@ from relight_core.colour import linear_to_srgb, srgb_to_linear
 from relight_core.diffusion import ConditionedDenoiser, EDMPrecond, get_sigmas_karras, sample_res2ab
 from relight_core.dit import DiTConfig, JointDiT, pack_lighting
 from relight_core.devices import resolve_device
+from relight_core.errors import InputError
 from relight_core.precision import resolve_precision
 from relight_core.tokenizer import PixelTokenizer
 from relight_core.training.loop import EMA, make_optimizer
@@ -551,7 +552,7 @@ def main(argv: list[str] | None = None) -> None:
             parser.error(f"no pack at {path}; make one with python -m relight_core.training.pack")
     try:
         summary = train(FastConfig(**args, recipe=recipe))
-    except PackMismatch as error:
+    except (PackMismatch, InputError) as error:  # packs that do not match; a device this machine lacks
         parser.error(str(error))
     print(json.dumps(summary, indent=1))
 
