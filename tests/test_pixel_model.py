@@ -187,13 +187,16 @@ def test_mix_and_crop_shares_outside_their_range_are_refused_before_anything_loa
 
 
 def test_fast_training_on_a_device_this_machine_lacks_says_so_in_one_sentence(tmp_path, capsys):
-    if torch.cuda.is_available():
-        pytest.skip("this machine has a CUDA GPU")
+    # no machine has 64 GPUs; one without any says so, one with some names how many it has
     write_pack(write_pack_dataset(tmp_path / "data"), "train", tmp_path / "p.npz", lighting_size=8)
     with pytest.raises(SystemExit) as exit_info:
-        main(["--pack", str(tmp_path / "p.npz"), "--out", str(tmp_path / "run"), "--device", "cuda"])
+        main(["--pack", str(tmp_path / "p.npz"), "--out", str(tmp_path / "run"), "--device", "cuda:64"])
     assert exit_info.value.code == 2
-    assert "The device 'cuda' was asked for, but this machine has no usable CUDA GPU" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    if torch.cuda.is_available():
+        assert "There is no GPU cuda:64: this machine has" in err
+    else:
+        assert "The device 'cuda:64' was asked for, but this machine has no usable CUDA GPU" in err
     assert not (tmp_path / "run").exists()
 
 
