@@ -25,6 +25,7 @@ from relight_core.arguments import MAX_ENSEMBLE
 from relight_core.dit import DIT_PRESETS, DiTConfig, JointDiT
 from relight_core.errors import InputError
 from relight_core.precision import check_precision
+from relight_core.refiner import REFINER_FILE, Refiner, RefinerConfig
 from relight_core.tokenizer import build_tokenizer
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
@@ -55,6 +56,8 @@ class ModelSpec:
                                              # residual model's offset, 0 = off (upsample.smooth_offset)
     ensemble: int = 1                    # samples averaged into each result; every second one is run on the
                                          # mirror image under the mirrored light (Relighter, MAX_ENSEMBLE)
+    refiner: dict | None = None          # the detail refiner's shape (refiner.RefinerConfig) when the folder
+                                         # holds refiner.safetensors; None = no refiner
     notes: dict = field(default_factory=dict)
 
     def to_json(self) -> dict:
@@ -88,6 +91,14 @@ class ModelSpec:
             if not isinstance(count, int) or isinstance(count, bool) or not 1 <= count <= MAX_ENSEMBLE:
                 raise InputError(f"The model's config.json has ensemble {count!r}; it takes a whole number of "
                                  f"samples from 1 to {MAX_ENSEMBLE}, or leave it out.")
+        if kwargs.get("refiner") is not None:
+            try:
+                kwargs["refiner"] = RefinerConfig.from_dict(kwargs["refiner"]).to_dict()
+            except (ValueError, TypeError, AttributeError):
+                raise InputError(f"The model's config.json has refiner {kwargs['refiner']!r}; it takes "
+                                 '"widths" (1 to 6 whole numbers from 1 to 1024), "blocks" (0 to 8), "base" '
+                                 '("raw" or "filtered") and "clips" (["relit", "albedo"] or one of them), or '
+                                 'leave it out.') from None
         return cls(**kwargs)
 
 
@@ -183,6 +194,17 @@ def load_model(model: str | Path = "default", device: str | torch.device = "cpu"
     if isinstance(tokenizer, torch.nn.Module):
         tokenizer.to(device).eval().requires_grad_(False)
     return spec, dit, tokenizer
+
+
+def load_refiner(model: str | Path = "default", device: str | torch.device = "cpu") -> Refiner | None:
+    """The model folder's detail refiner (refiner.py) in fp32, eval mode, or None when its config
+    names none."""
+    spec, directory = resolve_model(model)
+    if spec.refiner is None or directory is None:
+        return None
+    refiner = Refiner(RefinerConfig.from_dict(spec.refiner))
+    _load_state(refiner, directory / REFINER_FILE, device, torch.float32)
+    return refiner.to(device).eval().requires_grad_(False)
 
 
 def _load_state(module: torch.nn.Module, path: Path, device: str | torch.device = "cpu",

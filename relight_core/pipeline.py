@@ -30,7 +30,7 @@ import numpy as np
 import torch
 
 from relight_core import lighting
-from relight_core.checkpoint import ModelSpec, load_model, resolve_model
+from relight_core.checkpoint import ModelSpec, load_model, load_refiner, resolve_model
 from relight_core.chunking import crossfade_weights, pad_to_valid, plan_chunks, stitch
 from relight_core.costs import CostModel
 from relight_core.diffusion import SAMPLERS, ConditionedDenoiser, EDMPrecond, get_sigmas_karras, guided
@@ -52,7 +52,7 @@ class Relighter(CostModel):
     memory estimates: `costs.CostModel`)."""
 
     def __init__(self, spec: ModelSpec, dit, tokenizer, device: str | torch.device = "cpu",
-                 precision: str | None = None):
+                 precision: str | None = None, refiner: torch.nn.Module | None = None):
         self.spec = spec
         self.device = torch.device(device)
         # The hardware decides (precision.py), never the dtype the weights were stored in.
@@ -62,6 +62,7 @@ class Relighter(CostModel):
         # Weights in the compute dtype: under autocast no per-call weight casts, in fp32 no bf16 left over.
         self.dit = dit.to(self.dtype)
         self.tokenizer = _tokenizer_in(tokenizer, self.dtype)
+        self.refiner = refiner  # refiner.Refiner (fp32 weights; runs under the autocast) or None
         self.denoiser = EDMPrecond(self._network)
         self._latent_cache: OrderedDict[str, torch.Tensor] = OrderedDict()
         self._preview_matrix: torch.Tensor | None = None
@@ -79,7 +80,7 @@ class Relighter(CostModel):
         spec, _ = resolve_model(model)
         dtype = resolve_precision(precision or spec.precision, device)  # load straight into it
         spec, dit, tokenizer = load_model(model, device, dtype)
-        return cls(spec, dit, tokenizer, device, precision)
+        return cls(spec, dit, tokenizer, device, precision, load_refiner(model, device))
 
     # -- public API -------------------------------------------------------------------------
 
@@ -171,7 +172,7 @@ class Relighter(CostModel):
             except Stopped:
                 return
             relit_chunk, albedo_chunk = self._decode(x0, t, length)  # the members' mean
-            relit_chunk, albedo_chunk = self._smoothed(request.mode, chunk_frames, relit_chunk, albedo_chunk)
+            relit_chunk, albedo_chunk = self._refined(request.mode, chunk_frames, relit_chunk, albedo_chunk)
             weights = crossfade_weights(overlap[0].shape[0]) if overlap is not None else None
             stitch(relit_out, relit_chunk, start, weights)
             stitch(albedo_out, albedo_chunk, start, weights)
@@ -374,6 +375,35 @@ class Relighter(CostModel):
         if members == 1:
             return relit[0], albedo[0]
         return relit.mean(axis=0), albedo.mean(axis=0)
+
+    def _refined(self, mode: str, frames: np.ndarray, relit: np.ndarray, albedo: np.ndarray
+                 ) -> tuple[np.ndarray, np.ndarray]:
+        """The relit and albedo frames [T,H,W,3] in [0, 1] after the model's refiner (refiner.py: it
+        sharpens what the DiT made, looking at the input) or, for a model without one, its offset
+        filter (`_smoothed`). Not in render mode, whose outputs do not start from an input photo."""
+        if self.refiner is None or mode == "render":
+            return self._smoothed(mode, frames, relit, albedo)
+
+        def signed(x: np.ndarray) -> torch.Tensor:
+            return torch.from_numpy(np.ascontiguousarray(x)).float().permute(0, 3, 1, 2).to(self.device) * 2 - 1
+
+        filtered = self._smoothed(mode, frames, relit, albedo) if self.refiner.config.base == "filtered" else None
+        refined_relit, refined_albedo = [], []
+        with torch.no_grad(), self._autocast():
+            for start in range(0, len(frames), 8):  # a few frames at a time: memory stays flat for long clips
+                part = slice(start, start + 8)
+                given = None if filtered is None else (signed(filtered[0][part]), signed(filtered[1][part]))
+                r, a = self.refiner.refine(signed(frames[part]), signed(relit[part]), signed(albedo[part]), given)
+                refined_relit.append(r.float())
+                refined_albedo.append(a.float())
+
+        def unsigned(parts: list[torch.Tensor]) -> np.ndarray:
+            return ((torch.cat(parts) + 1) / 2).clamp(0, 1).permute(0, 2, 3, 1).cpu().numpy().astype(relit.dtype)
+
+        base = (relit, albedo) if filtered is None else filtered
+        clips = self.refiner.config.clips    # a clip it does not correct comes back exactly as it was
+        return (unsigned(refined_relit) if "relit" in clips else base[0],
+                unsigned(refined_albedo) if "albedo" in clips else base[1])
 
     def _smoothed(self, mode: str, frames: np.ndarray, relit: np.ndarray, albedo: np.ndarray
                   ) -> tuple[np.ndarray, np.ndarray]:

@@ -1,0 +1,135 @@
+"""The default model's detail refiner: a small convolutional U-Net run after the DiT.
+
+The default model's pixel tokenizer gives the DiT 8×8-pixel tokens; what it predicts inside a token
+comes out of one linear layer, so edges — shadow borders, texture the albedo should keep, the
+shading the albedo should lose — come out soft. The refiner looks at the full-resolution input next
+to the DiT's relit and albedo frames (all at the model's size) and adds a correction:
+
+    relit', albedo' = base_relit + Δ_relit, base_albedo + Δ_albedo,
+    (Δ_relit, Δ_albedo) = U-Net(input, relit, albedo[, base_relit, base_albedo])
+
+where the base is the DiT's frames ("raw") or those after the model's offset filter ("filtered":
+`ModelSpec.offset_filter`, the hand-tuned form of the same idea), and only the `clips` it is
+configured for are corrected (the shipped one: the albedo alone; docs/QUALITY.md says why). It never
+sees the light: whatever follows the probe comes from the DiT. Its last layer starts at zero, so an
+untrained refiner returns its base unchanged.
+
+Weights: `refiner.safetensors` next to the DiT's, its shape in config.json's "refiner" entry
+(`RefinerConfig`). Trained by `python -m relight_core.training.refine` on the frozen DiT's outputs.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import nn
+from torch.nn import functional as F
+
+REFINER_FILE = "refiner.safetensors"
+
+
+@dataclass(frozen=True)
+class RefinerConfig:
+    widths: tuple[int, ...] = (24, 48, 96, 128)   # channels at full, 1/2, 1/4, 1/8 resolution
+    blocks: int = 1                               # residual blocks per level (twice at the bottom)
+    base: str = "raw"                             # what the corrections add to: the DiT's frames ("raw") or
+                                                  # those after the model's offset filter ("filtered")
+    clips: tuple[str, ...] = ("relit", "albedo")  # the frames it corrects; the others stay the base's
+
+    @classmethod
+    def from_dict(cls, data: dict) -> "RefinerConfig":
+        widths, blocks = data.get("widths", list(cls.widths)), data.get("blocks", cls.blocks)
+        base, clips = data.get("base", cls.base), data.get("clips", list(cls.clips))
+
+        def whole(v, low, high):
+            return isinstance(v, int) and not isinstance(v, bool) and low <= v <= high
+
+        if (not isinstance(widths, (list, tuple)) or not 1 <= len(widths) <= 6
+                or not all(whole(w, 1, 1024) for w in widths) or not whole(blocks, 0, 8)
+                or base not in ("raw", "filtered") or not isinstance(clips, (list, tuple))
+                or not clips or not set(clips) <= {"relit", "albedo"}):
+            raise ValueError(f"a refiner takes 1–6 widths from 1 to 1024, 0–8 blocks, base raw or filtered "
+                             f"and clips relit and/or albedo; got {data!r}")
+        return cls(widths=tuple(widths), blocks=blocks, base=base,
+                   clips=tuple(c for c in ("relit", "albedo") if c in clips))
+
+    def to_dict(self) -> dict:
+        return {"widths": list(self.widths), "blocks": self.blocks, "base": self.base, "clips": list(self.clips)}
+
+    @property
+    def in_channels(self) -> int:
+        return 9 if self.base == "raw" else 15
+
+    @property
+    def multiple(self) -> int:
+        """Frame sides must be multiples of this (one halving per level below the first)."""
+        return 2 ** (len(self.widths) - 1)
+
+
+class _Block(nn.Module):
+    def __init__(self, width: int):
+        super().__init__()
+        self.conv1 = nn.Conv2d(width, width, 3, padding=1)
+        self.conv2 = nn.Conv2d(width, width, 3, padding=1)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return x + self.conv2(F.silu(self.conv1(F.silu(x))))
+
+
+class Refiner(nn.Module):
+    """U-Net: [B,9,H,W] (input, relit, albedo in [-1, 1]; with base "filtered" also the filtered relit
+    and albedo: [B,15,H,W]) → [B,6,H,W] corrections (relit, albedo)."""
+
+    def __init__(self, config: RefinerConfig = RefinerConfig()):
+        super().__init__()
+        self.config = config
+        w = config.widths
+        self.stem = nn.Conv2d(config.in_channels, w[0], 3, padding=1)
+        self.down = nn.ModuleList(nn.Conv2d(a, b, 3, stride=2, padding=1) for a, b in zip(w[:-1], w[1:]))
+        self.enc = nn.ModuleList(nn.Sequential(*[_Block(c) for _ in range(config.blocks)]) for c in w[:-1])
+        self.mid = nn.Sequential(*[_Block(w[-1]) for _ in range(2 * config.blocks)])
+        self.up = nn.ModuleList(nn.Conv2d(b + a, a, 1) for a, b in zip(w[:-1], w[1:]))
+        self.dec = nn.ModuleList(nn.Sequential(*[_Block(c) for _ in range(config.blocks)]) for c in w[:-1])
+        self.head = nn.Conv2d(w[0], 6, 3, padding=1)
+        nn.init.zeros_(self.head.weight)
+        nn.init.zeros_(self.head.bias)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        h = self.stem(x)
+        skips = []
+        for enc, down in zip(self.enc, self.down):
+            h = enc(h)
+            skips.append(h)
+            h = down(F.silu(h))
+        h = self.mid(h)
+        for i in reversed(range(len(skips))):
+            h = F.interpolate(h, size=skips[i].shape[-2:], mode="bilinear", align_corners=False)
+            h = self.dec[i](self.up[i](torch.cat([h, skips[i]], dim=1)))
+        return self.head(F.silu(h))
+
+    def refine(self, inputs: torch.Tensor, relit: torch.Tensor, albedo: torch.Tensor,
+               filtered: tuple[torch.Tensor, torch.Tensor] | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """Refined (relit, albedo) [B,3,H,W] in [-1, 1] from the input and the DiT's frames [B,3,H,W]
+        in [-1, 1] (and, for base "filtered", those frames after the offset filter); sides that are
+        not multiples of `config.multiple` are padded by reflection."""
+        height, width = inputs.shape[-2:]
+        m = self.config.multiple
+        pad_h, pad_w = -height % m, -width % m
+        parts = [inputs, relit, albedo]
+        if self.config.base == "filtered":
+            if filtered is None:
+                raise ValueError("this refiner adds to the filtered frames; pass them")
+            parts += list(filtered)
+            relit, albedo = filtered
+        x = torch.cat(parts, dim=1)
+        if pad_h or pad_w:
+            mode = "reflect" if pad_h < height and pad_w < width else "replicate"
+            x = F.pad(x, (0, pad_w, 0, pad_h), mode=mode)
+        delta = self.forward(x)[..., :height, :width].to(relit.dtype)
+        if "relit" in self.config.clips:
+            relit = (relit + delta[:, :3]).clamp(-1, 1)
+        if "albedo" in self.config.clips:
+            albedo = (albedo + delta[:, 3:]).clamp(-1, 1)
+        return relit, albedo
+

@@ -1,0 +1,336 @@
+"""Train a pixel model's detail refiner (relight_core/refiner.py) on its frozen DiT's outputs.
+
+    python -m relight_core.training.refine --model models/default --pack train.npz --seen trained-on.npz \
+        --scenes 3000 --val-pack val.npz --out runs/refine --minutes 40 --model-dir models/refined
+
+1. **The DiT's outputs.** The model's one-step relit and albedo frames, as `Relighter` decodes them
+   (its residual gains applied), for both directions of the first `--scenes` scenes of the packs that
+   no `--seen` pack holds (scenes the DiT never trained on, so that its errors are those it makes on
+   new photos), and for the validation pack. They are the slow part (~0.25 s an item on one CPU
+   thread) and are kept in `--out/outputs-*.npz`, so a rerun or a second run does not repeat them.
+2. **Training.** The refiner learns a correction of those frames towards the rendered truth: per
+   item the log of the squared error after the evaluation protocol's per-channel scale fit, plus half
+   the log of the plain squared error, on the foreground mask, relit and albedo alike (or the `--clips`
+   named: a refiner may correct the albedo alone, the relit frames staying the filter's); left↔right
+   flips; AdamW with a warm-up; an EMA of the weights. Every `--val-every-minutes` the EMA is scored
+   on the validation pack by the protocol's PSNR (evaluation.metrics) and the best one is kept.
+3. **Stop and resume.** A checkpoint (weights, EMA, optimiser, generator, step, time used) is written
+   at every validation; the same command resumes from it exactly and stops when `--minutes` are used.
+
+The best refiner goes to `--out/refiner.safetensors` (scores in `--out/best.json`); `--model-dir`
+also writes a model folder: the model's config.json and DiT with the refiner added.
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import json
+import shutil
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from safetensors.torch import save_file
+
+from relight_core.checkpoint import CONFIG_FILE, DIT_FILE, load_model
+from relight_core.evaluation.metrics import protocol_psnr
+from relight_core.precision import resolve_precision
+from relight_core.refiner import REFINER_FILE, Refiner, RefinerConfig
+from relight_core.tokenizer import build_tokenizer
+from relight_core.training.fast import make_batch, sample_relight
+from relight_core.training.pack import load_packs
+from relight_core.upsample import smooth_offset
+
+CHECKPOINT_FILE = "checkpoint.pt"
+
+
+# -- the DiT's outputs ------------------------------------------------------------------------
+
+def unseen_items(names: list[str], seen: list[Path], scenes: int | None) -> list[tuple[int, int]]:
+    """(scene index, target light) for both directions of the first `scenes` scenes no `seen` pack
+    holds (`train` passes the validation pack among them: its scenes never train)."""
+    held = {str(n) for path in seen for n in np.load(path, allow_pickle=False)["names"]}
+    chosen = [i for i, name in enumerate(names) if str(name) not in held]
+    chosen = chosen if scenes is None else chosen[:scenes]
+    return [(i, t) for i in chosen for t in (0, 1)]
+
+
+@torch.no_grad()
+def dit_outputs(model: Path, pack: dict, items: list[tuple[int, int]], batch: int = 16,
+                log=print) -> dict[str, np.ndarray]:
+    """The model's relit and albedo frames (uint8 [N,3,H,W]) for `items`, as `Relighter` decodes them."""
+    spec, dit, _ = load_model(model, "cpu")
+    if spec.tokenizer.get("type") != "pixel" or not spec.residual:
+        raise ValueError(f"{model} is not a residual pixel-tokenizer model; the refiner is for the default model's kind")
+    tokenizer = build_tokenizer(spec.tokenizer)
+    autocast = resolve_precision("auto", torch.device("cpu")) == torch.bfloat16
+    relit, albedo = [], []
+    started = time.time()
+    for start in range(0, len(items), batch):
+        part = items[start:start + batch]
+        scenes = torch.tensor([s for s, _ in part])
+        targets = torch.tensor([t for _, t in part])
+        data = make_batch(pack, tokenizer, scenes, targets, torch.zeros(len(part), dtype=torch.bool))
+        x0 = sample_relight(dit, data, spec.steps, autocast=autocast, residual=True)
+        t = data["input"].shape[2]
+        source = tokenizer.decode(data["input"])[:, :, 0].float()
+        for clip, gain, out in ((1, spec.residual_gain[0], relit), (2, spec.residual_gain[1], albedo)):
+            frames = tokenizer.decode(x0[:, :, clip * t:(clip + 1) * t].float())[:, :, 0]
+            frames = source + gain * (frames - source)            # the gain Relighter's denoiser applies
+            out.append(((frames.clamp(-1, 1) + 1) * 127.5).round().to(torch.uint8).numpy())
+        if start // batch % 25 == 0:
+            log(f"DiT outputs: {start + len(part)} of {len(items)} items, {time.time() - started:.0f} s")
+    return {"relit": np.concatenate(relit), "albedo": np.concatenate(albedo)}
+
+
+def cached_outputs(path: Path, model: Path, pack: dict, items: list[tuple[int, int]], log=print) -> dict:
+    """`dit_outputs`, read from `path` when it holds these very items of these scenes, else computed there."""
+    names = np.array([str(pack["names"][s]) for s, _ in items])
+    targets = np.array([t for _, t in items])
+    if path.is_file():
+        with np.load(path, allow_pickle=False) as z:
+            if np.array_equal(z["names"], names) and np.array_equal(z["targets"], targets):
+                return {"relit": z["relit"], "albedo": z["albedo"]}
+        log(f"{path} holds other items; computing them again")
+    out = dit_outputs(model, pack, items, log=log)
+    np.savez(path, names=names, targets=targets, **out)
+    return out
+
+
+def item_tensors(pack: dict, items: list[tuple[int, int]], outputs: dict, spec, base: str) -> dict:
+    """uint8 tensors per item: input, target, albedo_t, relit, albedo (the DiT's), mask; for base
+    "filtered" also f_relit, f_albedo (after the model's offset filter, as `Relighter._smoothed`)."""
+    scenes = torch.tensor([s for s, _ in items])
+    targets = torch.tensor([t for _, t in items])
+    data = {"input": pack["rgb"][scenes, 1 - targets], "target": pack["rgb"][scenes, targets],
+            "albedo_t": pack["albedo"][scenes], "mask": pack["mask"][scenes],
+            "relit": torch.from_numpy(outputs["relit"]), "albedo": torch.from_numpy(outputs["albedo"])}
+    if base == "filtered":
+        radii = spec.offset_filter
+        filtered = {"f_relit": [], "f_albedo": []}
+        for start in range(0, len(items), 256):
+            guide = _hwc(data["input"][start:start + 256])
+            for key, source, radius in (("f_relit", "relit", radii[0]), ("f_albedo", "albedo", radii[1])):
+                frames = smooth_offset(guide, _hwc(data[source][start:start + 256]), radius)
+                filtered[key].append(torch.from_numpy(np.round(frames * 255).astype(np.uint8)).permute(0, 3, 1, 2))
+        data.update({k: torch.cat(v).contiguous() for k, v in filtered.items()})
+    return data
+
+
+def _hwc(images: torch.Tensor) -> np.ndarray:
+    """uint8 [N,3,H,W] → float32 [N,H,W,3] in [0, 1]."""
+    return images.permute(0, 2, 3, 1).numpy().astype(np.float32) / 255
+
+
+def _signed(images: torch.Tensor) -> torch.Tensor:
+    return images.float() / 127.5 - 1
+
+
+# -- training ---------------------------------------------------------------------------------
+
+def item_loss(pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """Mean over items of log MSE after a per-channel scale fit on the mask + ½ log plain MSE
+    (images [B,3,H,W] in [-1, 1], mask [B,H,W]): the protocol's PSNR, as a loss."""
+    p, t = (pred + 1) / 2, (target + 1) / 2
+    m = mask[:, None].float()
+    count = m.sum((1, 2, 3)).clamp_min(1) * 3
+    plain = (m * (p - t) ** 2).sum((1, 2, 3)) / count
+    scale = (m * p * t).sum((2, 3)) / (m * p * p).sum((2, 3)).clamp_min(1e-6)
+    fitted = (m * (p * scale[..., None, None] - t) ** 2).sum((1, 2, 3)) / count
+    return torch.log(fitted + 1e-5).mean() + 0.5 * torch.log(plain + 1e-5).mean()
+
+
+def model_inputs(data: dict, index, base: str, flip: torch.Tensor | None = None):
+    """(network input [B,9|15,H,W], relit base, albedo base) in [-1, 1] for items `index`."""
+    def get(key):
+        x = data[key][index]
+        if flip is not None:
+            x = torch.where(flip.view(-1, *([1] * (x.dim() - 1))), x.flip(-1), x)
+        return x
+
+    parts = [_signed(get(k)) for k in ("input", "relit", "albedo")]
+    if base == "filtered":
+        parts += [_signed(get("f_relit")), _signed(get("f_albedo"))]
+    return torch.cat(parts, dim=1), parts[-2], parts[-1], get
+
+
+@torch.no_grad()
+def validate(refiner: Refiner, data: dict, autocast: bool) -> dict[str, float]:
+    """The protocol's mean PSNR (relit, albedo) of the refined frames on `data`."""
+    relit, albedo = [], []
+    for start in range(0, len(data["input"]), 32):
+        index = slice(start, start + 32)
+        x, r, a, _ = model_inputs(data, index, refiner.config.base)
+        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=autocast):
+            delta = refiner(x).float()
+        relit.append(((r + delta[:, :3]).clamp(-1, 1) + 1) / 2)
+        albedo.append(((a + delta[:, 3:]).clamp(-1, 1) + 1) / 2)
+    return scores(data, torch.cat(relit).permute(0, 2, 3, 1).numpy(), torch.cat(albedo).permute(0, 2, 3, 1).numpy())
+
+
+def scores(data: dict, relit: np.ndarray, albedo: np.ndarray) -> dict[str, float]:
+    target, albedo_t, mask = _hwc(data["target"]), _hwc(data["albedo_t"]), data["mask"].numpy()
+    return {"relit": round(float(np.mean([protocol_psnr(relit[i], target[i], mask[i]) for i in range(len(mask))])), 3),
+            "albedo": round(float(np.mean([protocol_psnr(albedo[i], albedo_t[i], mask[i])
+                                           for i in range(len(mask))])), 3)}
+
+
+def train(args: argparse.Namespace, log=print) -> dict:
+    """Run (or resume) a refiner training; returns best.json's contents."""
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    torch.set_num_threads(args.threads)
+    spec, _, _ = load_model(args.model, "cpu")
+    config = RefinerConfig(widths=tuple(args.widths), blocks=args.blocks, base=args.base, clips=tuple(args.clips))
+    pack = load_packs(args.pack)
+    items = unseen_items(pack["names"], [*args.seen, args.val_pack], args.scenes)
+    if not items:
+        raise ValueError("no scene of the packs is left once the --seen packs' scenes are taken out")
+    outputs = cached_outputs(out / "outputs-train.npz", args.model, pack, items, log)
+    train_data = item_tensors(pack, items, outputs, spec, config.base)
+    del pack
+    val_pack = load_packs(args.val_pack)
+    val_items = [(i, t) for i in range(len(val_pack["names"])) for t in (0, 1)]
+    val_outputs = cached_outputs(out / "outputs-val.npz", args.model, val_pack, val_items, log)
+    val_data = item_tensors(val_pack, val_items, val_outputs, spec, config.base)
+    del val_pack
+    autocast = resolve_precision("auto", torch.device("cpu")) == torch.bfloat16
+
+    model = Refiner(config)
+    ema = copy.deepcopy(model).eval().requires_grad_(False)
+    optimizer = torch.optim.AdamW(model.parameters(), lr=args.lr, weight_decay=0.0)
+    generator = torch.Generator().manual_seed(args.seed)
+    state = {"step": 0, "seconds": 0.0, "best": None,
+             "start": {"dit": scores(val_data, _hwc(val_data["relit"]), _hwc(val_data["albedo"]))}}
+    if config.base == "filtered":
+        state["start"]["filtered"] = scores(val_data, _hwc(val_data["f_relit"]), _hwc(val_data["f_albedo"]))
+    checkpoint = out / CHECKPOINT_FILE
+    if checkpoint.is_file():
+        saved = torch.load(checkpoint, map_location="cpu", weights_only=True)
+        if {k: v for k, v in saved["config"].items() if k != "clips"} != {
+                k: v for k, v in config.to_dict().items() if k != "clips"}:
+            raise ValueError(f"{checkpoint} is a refiner of another shape ({saved['config']}); "
+                             "give a new --out or the same --widths/--blocks/--base")
+        model.load_state_dict(saved["model"])
+        ema.load_state_dict(saved["ema"])
+        optimizer.load_state_dict(saved["optimizer"])
+        generator.set_state(saved["generator"])
+        state = json.loads(saved["state"])
+        log(f"resumed at step {state['step']} ({state['seconds'] / 60:.1f} min used)")
+    else:
+        log(f"start (the DiT's frames on the validation pack): {state['start']}")
+    records = open(out / "log.jsonl", "a")
+
+    def save_best(score: dict) -> None:
+        save_file({k: v.contiguous() for k, v in ema.state_dict().items()}, out / REFINER_FILE)
+        best = {"step": state["step"], "val": {c: score[c] for c in config.clips}, "start": state["start"],
+                "refiner": config.to_dict(),
+                "model": str(args.model), "train_items": len(items), "val_items": len(val_items)}
+        (out / "best.json").write_text(json.dumps(best, indent=1))
+        state["best"] = score
+
+    count = len(train_data["input"])
+    since_val, started = 0.0, time.time() - state["seconds"]
+    while state["seconds"] < args.minutes * 60:
+        step_started = time.time()
+        index = torch.randint(0, count, (args.batch,), generator=generator)
+        flip = torch.rand(args.batch, generator=generator) < 0.5
+        x, r, a, get = model_inputs(train_data, index, config.base, flip)
+        for group in optimizer.param_groups:
+            group["lr"] = args.lr * min(1.0, (state["step"] + 1) / args.warmup)
+        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=autocast):
+            delta = model(x).float()
+        mask = get("mask")
+        loss = sum(item_loss(base + delta[:, k:k + 3], _signed(get(target)), mask)
+                   for clip, base, k, target in (("relit", r, 0, "target"), ("albedo", a, 3, "albedo_t"))
+                   if clip in config.clips)
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
+        optimizer.step()
+        with torch.no_grad():
+            for e, p in zip(ema.parameters(), model.parameters()):
+                e.lerp_(p, 1 - args.ema)
+        state["step"] += 1
+        state["seconds"] = time.time() - started
+        since_val += time.time() - step_started
+        if state["step"] % 50 == 0:
+            log(f"step {state['step']} loss {loss.item():.4f} {state['seconds'] / 60:.1f} min")
+        if since_val >= args.val_every_minutes * 60 or state["seconds"] >= args.minutes * 60:
+            since_val = 0.0
+            score = validate(ema, val_data, autocast)
+            records.write(json.dumps({"step": state["step"], "minutes": round(state["seconds"] / 60, 2),
+                                      "loss": round(loss.item(), 4), "val": score}) + "\n")
+            records.flush()
+            log(f"step {state['step']}: validation {score}")
+            if state["best"] is None or sum(score[c] for c in config.clips) > sum(state["best"][c] for c in config.clips):
+                save_best(score)
+            torch.save({"model": model.state_dict(), "ema": ema.state_dict(), "optimizer": optimizer.state_dict(),
+                        "generator": generator.get_state(), "config": config.to_dict(),
+                        "state": json.dumps(state)}, checkpoint)
+    records.close()
+    if not (out / REFINER_FILE).is_file():
+        raise ValueError("no validation ran, so no refiner was kept; give more --minutes")
+    best = json.loads((out / "best.json").read_text())
+    if args.model_dir is not None:
+        write_model(Path(args.model), out, Path(args.model_dir), best)
+    return best
+
+
+def write_model(model: Path, run: Path, folder: Path, best: dict) -> Path:
+    """A model folder: `model`'s DiT and config.json with the run's refiner added."""
+    folder.mkdir(parents=True, exist_ok=True)
+    if folder.resolve() != model.resolve():
+        shutil.copyfile(model / DIT_FILE, folder / DIT_FILE)
+    shutil.copyfile(run / REFINER_FILE, folder / REFINER_FILE)
+    config = json.loads((model / CONFIG_FILE).read_text())
+    config["refiner"] = best["refiner"]
+    config.setdefault("notes", {})["refiner"] = {k: best[k] for k in ("step", "val", "start", "train_items", "val_items")}
+    (folder / CONFIG_FILE).write_text(json.dumps(config, indent=2) + "\n")
+    return folder
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--model", type=Path, required=True, help="a residual pixel-tokenizer model folder")
+    parser.add_argument("--pack", type=Path, nargs="+", required=True, help="packs (training.pack) to train on")
+    parser.add_argument("--seen", type=Path, nargs="*", default=[], help="packs whose scenes the DiT trained on")
+    parser.add_argument("--scenes", type=int, default=None, help="at most this many unseen scenes (both directions each)")
+    parser.add_argument("--val-pack", type=Path, required=True, help="held-out scenes to choose the refiner on")
+    parser.add_argument("--out", type=Path, required=True)
+    parser.add_argument("--model-dir", type=Path, help="also write a model folder with the refiner here")
+    parser.add_argument("--minutes", type=float, default=30.0)
+    parser.add_argument("--lr", type=float, default=1.5e-3)
+    parser.add_argument("--batch", type=int, default=16)
+    parser.add_argument("--warmup", type=int, default=100)
+    parser.add_argument("--ema", type=float, default=0.998)
+    parser.add_argument("--widths", type=int, nargs="+", default=list(RefinerConfig.widths))
+    parser.add_argument("--blocks", type=int, default=RefinerConfig.blocks)
+    parser.add_argument("--base", choices=("raw", "filtered"), default="filtered")
+    parser.add_argument("--clips", nargs="+", choices=("relit", "albedo"), default=["relit", "albedo"],
+                        help="the frames it learns to correct (its loss, the choice of the best, the model's config)")
+    parser.add_argument("--val-every-minutes", type=float, default=7.0)
+    parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--seed", type=int, default=0)
+    args = parser.parse_args(argv)
+    for path in [*args.pack, *args.seen, args.val_pack]:
+        if not path.is_file():
+            parser.error(f"no pack at {path}")
+    if not (args.model / DIT_FILE).is_file():
+        parser.error(f"--model {args.model} holds no {DIT_FILE}; give a model folder")
+    try:
+        RefinerConfig.from_dict({"widths": args.widths, "blocks": args.blocks, "base": args.base, "clips": args.clips})
+    except ValueError as error:
+        parser.error(str(error))
+    try:
+        best = train(args)
+    except ValueError as error:
+        parser.error(str(error))
+    print(f"best: step {best['step']}, validation {best['val']} (the DiT's frames: {best['start']})")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,176 @@
+"""The default model's detail refiner: what it adds in the Relighter, its config and weights, and its
+training on a frozen DiT's outputs (relight_core/refiner.py, relight_core/training/refine.py)."""
+
+import json
+from dataclasses import replace
+
+import numpy as np
+import pytest
+import torch
+from safetensors.torch import save_file
+
+from relight_core.checkpoint import ModelSpec, load_model, load_refiner
+from relight_core.dit import DiTConfig, JointDiT
+from relight_core.errors import InputError
+from relight_core.pipeline import Relighter, RelightRequest
+from relight_core.refiner import REFINER_FILE, Refiner, RefinerConfig
+from relight_core.tokenizer import build_tokenizer
+from relight_core.training import refine
+from relight_core.training.fast import FastConfig, train
+from relight_core.training.pack import write_pack
+from relight_core.training.recipe import Recipe
+from relight_core.upsample import smooth_offset
+from tests.factory import write_pack_dataset
+
+SMALL = RefinerConfig(widths=(4, 8), blocks=1)
+
+
+def residual_model():
+    torch.manual_seed(0)
+    config = DiTConfig(width=32, depth=1, num_heads=2, patch_spatial=1, patch_temporal=1, out_channels=192,
+                       cross_attention=False, adaln_lora_dim=8)
+    dit = JointDiT(config)
+    torch.nn.init.normal_(dit.final_layer.linear.weight, std=0.05)    # offsets of its own
+    spec = ModelSpec(name="r", dit=config, tokenizer={"type": "pixel", "patch": 8}, chunk_frames=1,
+                     overlap_frames=0, size=32, steps=1, lighting_size=8, residual=True, offset_filter=(3, 2))
+    return spec, dit, build_tokenizer(spec.tokenizer)
+
+
+def test_the_refiner_adds_its_correction_to_the_dit_frames_or_the_filtered_ones_and_stays_out_of_render():
+    spec, dit, tok = residual_model()
+    frames = np.random.default_rng(1).random((2, 32, 32, 3)).astype(np.float32)
+    request = RelightRequest(frames=frames, probe=np.ones((16, 32, 3), np.float32))
+    plain = Relighter(replace(spec, offset_filter=(0, 0)), dit, tok).relight(request)
+    filtered = Relighter(spec, dit, tok).relight(request)
+    # An untrained refiner (its head is zero) changes nothing: the raw frames, or the filtered ones.
+    raw_refiner, filtered_refiner = Refiner(SMALL), Refiner(replace(SMALL, base="filtered"))
+    np.testing.assert_allclose(Relighter(spec, dit, tok, refiner=raw_refiner).relight(request).relit, plain.relit,
+                               atol=1e-5)
+    same = Relighter(spec, dit, tok, refiner=filtered_refiner).relight(request)
+    np.testing.assert_allclose(same.albedo, filtered.albedo, atol=1e-5)
+    np.testing.assert_allclose(same.relit, smooth_offset(frames, plain.relit, 3), atol=1e-5)
+    # With a head that adds a constant to the relit frames and another to the albedo, that is what comes out.
+    with torch.no_grad():
+        filtered_refiner.head.bias.copy_(torch.tensor([0.2, 0.2, 0.2, -0.4, -0.4, -0.4]))
+    moved = Relighter(spec, dit, tok, refiner=filtered_refiner).relight(request)
+    np.testing.assert_allclose(moved.relit, np.clip(filtered.relit + 0.1, 0, 1), atol=2e-3)  # bf16 where the CPU has it
+    np.testing.assert_allclose(moved.albedo, np.clip(filtered.albedo - 0.2, 0, 1), atol=2e-3)
+    # A refiner for the albedo alone leaves the relit frames as the offset filter made them.
+    albedo_only = Refiner(replace(SMALL, base="filtered", clips=("albedo",)))
+    albedo_only.load_state_dict(filtered_refiner.state_dict())
+    half = Relighter(spec, dit, tok, refiner=albedo_only).relight(request)
+    np.testing.assert_array_equal(half.relit, filtered.relit)
+    np.testing.assert_allclose(half.albedo, moved.albedo, atol=1e-6)
+    # Render mode (albedo → relit) has no input photo to refine against: the refiner stays out.
+    render = replace(request, mode="render", albedo=frames)
+    np.testing.assert_array_equal(Relighter(spec, dit, tok, refiner=filtered_refiner).relight(render).relit,
+                                  Relighter(spec, dit, tok).relight(render).relit)
+
+
+def test_the_refiner_takes_frames_of_any_size_and_learns_a_correction():
+    refiner = Refiner(RefinerConfig(widths=(4, 8, 8), blocks=1))
+    for height, width in ((36, 20), (3, 5), (64, 64)):
+        x = torch.rand(1, 3, height, width) * 2 - 1
+        relit, albedo = refiner.refine(x, x, x)
+        assert relit.shape == albedo.shape == x.shape
+    # A few steps of its loss on one item bring its output towards that item's target.
+    torch.manual_seed(0)
+    inputs = torch.rand(2, 9, 16, 16) * 2 - 1
+    target = (inputs[:, 3:6] * 0.5 + 0.3).clamp(-1, 1)
+    mask = torch.ones(2, 16, 16, dtype=torch.bool)
+    optimizer = torch.optim.Adam(refiner.parameters(), lr=1e-2)
+    losses = []
+    for _ in range(60):
+        delta = refiner(inputs)
+        loss = refine.item_loss(inputs[:, 3:6] + delta[:, :3], target, mask)
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+        losses.append(loss.item())
+    assert losses[-1] < losses[0] - 1.0       # log MSE: the error fell by more than e×
+
+
+def test_the_refiner_loss_is_the_protocols_psnr_after_the_scale_fit():
+    from relight_core.evaluation.metrics import protocol_psnr
+
+    rng = np.random.default_rng(0)
+    target = rng.random((1, 8, 8, 3)).astype(np.float32) * 0.8
+    pred = np.clip(target * np.array([0.5, 0.7, 0.9], np.float32) + rng.normal(0, 0.02, target.shape), 0, 1)
+    mask = np.ones((1, 8, 8), bool)
+    signed = [torch.from_numpy(x).permute(0, 3, 1, 2) * 2 - 1 for x in (pred, target)]
+    loss = refine.item_loss(*signed, torch.from_numpy(mask))
+    plain = float(((pred - target) ** 2).mean())
+    fitted = (loss.item() - 0.5 * np.log(plain + 1e-5))
+    # −10·log10 of the fitted error is the protocol's PSNR (the scale fit undoes the channel gains).
+    assert abs(-10 / np.log(10) * fitted - protocol_psnr(pred[0], target[0], mask[0])) < 0.05
+
+
+def test_a_refiner_in_config_json_round_trips_and_a_bad_one_or_a_missing_file_is_one_sentence(tmp_path):
+    spec, dit, tok = residual_model()
+    data = replace(spec, refiner=SMALL.to_dict()).to_json()
+    assert ModelSpec.from_json(json.loads(json.dumps(data))).refiner == SMALL.to_dict()
+    assert RefinerConfig.from_dict({"clips": ["albedo"]}).clips == ("albedo",)
+    for bad in ({"widths": []}, {"widths": [8, -1]}, {"widths": [8], "blocks": 2.5}, {"base": "sharp"}, "wide", {"clips": []}, {"clips": ["shadows"]}, {"clips": [["relit"]]},
+                {"widths": [10 ** 6]}):
+        with pytest.raises(InputError, match='has refiner .*; it takes "widths"'):
+            ModelSpec.from_json({**data, "refiner": bad})
+    folder = tmp_path / "model"
+    folder.mkdir()
+    save_file({k: v.contiguous() for k, v in dit.state_dict().items()}, folder / "dit.safetensors")
+    (folder / "config.json").write_text(json.dumps(data))
+    with pytest.raises(InputError, match=f"missing {REFINER_FILE}"):
+        Relighter.load(str(folder))
+    save_file({"stem.weight": torch.zeros(1)}, folder / REFINER_FILE)
+    with pytest.raises(InputError, match="do not match"):
+        load_refiner(folder)
+    save_file(Refiner(SMALL).state_dict(), folder / REFINER_FILE)
+    assert isinstance(Relighter.load(str(folder)).refiner, Refiner)
+    assert load_refiner("tiny") is None
+
+
+def test_refine_trains_on_unseen_scenes_resumes_and_writes_a_model_the_relighter_runs(tmp_path, capsys):
+    root = write_pack_dataset(tmp_path / "data", scenes=4)
+    write_pack(root, "train", tmp_path / "p.npz", lighting_size=8)
+    write_pack(root, "train", tmp_path / "seen.npz", lighting_size=8, limit=1)
+    write_pack(root, "train", tmp_path / "val.npz", lighting_size=8, limit=2)    # scenes 0 and 1
+    base = dict(pack=tmp_path / "p.npz", device="cpu", batch=2, width=32, depth=1, num_heads=2, log_every=1,
+                eval_items=2, eval_steps=1, warmup=1, checkpoint_every_minutes=0.0)
+    train(FastConfig(out=tmp_path / "dit", minutes=0.01, recipe=Recipe(residual=True), **base))
+    model = tmp_path / "dit" / "model"
+    config = json.loads((model / "config.json").read_text())
+    config["offset_filter"] = [2, 1]
+    (model / "config.json").write_text(json.dumps(config))
+    args = ["--model", str(model), "--pack", str(tmp_path / "p.npz"), "--seen", str(tmp_path / "seen.npz"),
+            "--val-pack", str(tmp_path / "val.npz"), "--out", str(tmp_path / "run"), "--widths", "4", "8",
+            "--batch", "2", "--minutes", "0.03", "--val-every-minutes", "0.01", "--warmup", "2",
+            "--model-dir", str(tmp_path / "refined")]
+    assert refine.main(args) == 0
+    best = json.loads((tmp_path / "run" / "best.json").read_text())
+    # It trains on the scenes neither the DiT (--seen) nor the validation saw: 2 scenes × 2 directions.
+    assert best["train_items"] == 4 and best["val_items"] == 4
+    cached = np.load(tmp_path / "run" / "outputs-train.npz")
+    assert set(cached["names"]) == {"scene_000002", "scene_000003"} and cached["relit"].shape == (4, 3, 32, 32)
+    log = [json.loads(line) for line in (tmp_path / "run" / "log.jsonl").read_text().splitlines()]
+    assert json.loads((tmp_path / "refined" / "config.json").read_text())["refiner"]["clips"] == ["relit", "albedo"]
+    # Run again with more minutes: it resumes at the step it stopped (no new DiT outputs) and goes on,
+    # here for the albedo alone, which the model folder it writes then says.
+    args[args.index("--minutes") + 1] = "0.06"
+    args += ["--clips", "albedo"]
+    capsys.readouterr()
+    assert refine.main(args) == 0
+    out = capsys.readouterr().out
+    assert f"resumed at step {log[-1]['step']}" in out and "DiT outputs" not in out
+    more = [json.loads(line) for line in (tmp_path / "run" / "log.jsonl").read_text().splitlines()]
+    assert more[-1]["step"] > log[-1]["step"]
+    relighter = Relighter.load(str(tmp_path / "refined"))
+    assert relighter.refiner is not None and relighter.refiner.config.base == "filtered"
+    assert relighter.refiner.config.clips == ("albedo",)
+    frames = np.random.default_rng(3).random((1, 32, 32, 3)).astype(np.float32)
+    result = relighter.relight(RelightRequest(frames=frames, probe=np.ones((16, 32, 3), np.float32)))
+    assert result.relit.shape == frames.shape and np.isfinite(result.albedo).all()
+    # A second shape on the same run folder is refused in one sentence, as is a model that is not a pixel model.
+    with pytest.raises(SystemExit):
+        refine.main([*args[:args.index("--widths")], "--widths", "4", "8", "8", "--minutes", "0.1"])
+    assert "another shape" in capsys.readouterr().err
+    spec, _, _ = load_model(model)
+    assert spec.residual
