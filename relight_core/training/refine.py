@@ -324,10 +324,13 @@ def main(argv: list[str] | None = None) -> int:
         RefinerConfig.from_dict({"widths": args.widths, "blocks": args.blocks, "base": args.base, "clips": args.clips})
     except ValueError as error:
         parser.error(str(error))
+    threads = torch.get_num_threads()
     try:
         best = train(args)
     except ValueError as error:
         parser.error(str(error))
+    finally:
+        torch.set_num_threads(threads)    # the caller's (a test session's) threads stay as they were
     print(f"best: step {best['step']}, validation {best['val']} (the DiT's frames: {best['start']})")
     return 0
 
