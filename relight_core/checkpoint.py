@@ -196,10 +196,9 @@ def load_model(model: str | Path = "default", device: str | torch.device = "cpu"
     return spec, dit, tokenizer
 
 
-def load_refiner(model: str | Path = "default", device: str | torch.device = "cpu") -> Refiner | None:
-    """The model folder's detail refiner (refiner.py) in fp32, eval mode, or None when its config
-    names none."""
-    spec, directory = resolve_model(model)
+def load_refiner(spec: ModelSpec, directory: Path | None, device: str | torch.device = "cpu") -> Refiner | None:
+    """The detail refiner (refiner.py) of a model folder (`resolve_model`'s spec and directory) in fp32,
+    eval mode, or None when its config names none."""
     if spec.refiner is None or directory is None:
         return None
     refiner = Refiner(RefinerConfig.from_dict(spec.refiner))

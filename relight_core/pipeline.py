@@ -77,10 +77,10 @@ class Relighter(CostModel):
         `precision` (auto | fp32 | bf16 | fp16) overrides the model's config; see precision.py.
         """
         device = resolve_device(device)  # a missing GPU or a typo is named, not blamed on the weights
-        spec, _ = resolve_model(model)
+        spec, directory = resolve_model(model)
         dtype = resolve_precision(precision or spec.precision, device)  # load straight into it
         spec, dit, tokenizer = load_model(model, device, dtype)
-        return cls(spec, dit, tokenizer, device, precision, load_refiner(model, device))
+        return cls(spec, dit, tokenizer, device, precision, load_refiner(spec, directory, device))
 
     # -- public API -------------------------------------------------------------------------
 

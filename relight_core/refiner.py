@@ -61,10 +61,6 @@ class RefinerConfig:
     def in_channels(self) -> int:
         return 9 if self.base == "raw" else 15
 
-    @property
-    def multiple(self) -> int:
-        """Frame sides must be multiples of this (one halving per level below the first)."""
-        return 2 ** (len(self.widths) - 1)
 
 
 class _Block(nn.Module):
@@ -111,22 +107,15 @@ class Refiner(nn.Module):
     def refine(self, inputs: torch.Tensor, relit: torch.Tensor, albedo: torch.Tensor,
                filtered: tuple[torch.Tensor, torch.Tensor] | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """Refined (relit, albedo) [B,3,H,W] in [-1, 1] from the input and the DiT's frames [B,3,H,W]
-        in [-1, 1] (and, for base "filtered", those frames after the offset filter); sides that are
-        not multiples of `config.multiple` are padded by reflection."""
-        height, width = inputs.shape[-2:]
-        m = self.config.multiple
-        pad_h, pad_w = -height % m, -width % m
+        in [-1, 1] (and, for base "filtered", those frames after the offset filter); any frame size
+        (each level's result is brought back to its skip's size)."""
         parts = [inputs, relit, albedo]
         if self.config.base == "filtered":
             if filtered is None:
                 raise ValueError("this refiner adds to the filtered frames; pass them")
             parts += list(filtered)
             relit, albedo = filtered
-        x = torch.cat(parts, dim=1)
-        if pad_h or pad_w:
-            mode = "reflect" if pad_h < height and pad_w < width else "replicate"
-            x = F.pad(x, (0, pad_w, 0, pad_h), mode=mode)
-        delta = self.forward(x)[..., :height, :width].to(relit.dtype)
+        delta = self.forward(torch.cat(parts, dim=1)).to(relit.dtype)
         if "relit" in self.config.clips:
             relit = (relit + delta[:, :3]).clamp(-1, 1)
         if "albedo" in self.config.clips:

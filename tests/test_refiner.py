@@ -9,7 +9,7 @@ import pytest
 import torch
 from safetensors.torch import save_file
 
-from relight_core.checkpoint import ModelSpec, load_model, load_refiner
+from relight_core.checkpoint import ModelSpec, load_model, load_refiner, resolve_model
 from relight_core.dit import DiTConfig, JointDiT
 from relight_core.errors import InputError
 from relight_core.pipeline import Relighter, RelightRequest
@@ -122,10 +122,10 @@ def test_a_refiner_in_config_json_round_trips_and_a_bad_one_or_a_missing_file_is
         Relighter.load(str(folder))
     save_file({"stem.weight": torch.zeros(1)}, folder / REFINER_FILE)
     with pytest.raises(InputError, match="do not match"):
-        load_refiner(folder)
+        load_refiner(*resolve_model(folder))
     save_file(Refiner(SMALL).state_dict(), folder / REFINER_FILE)
     assert isinstance(Relighter.load(str(folder)).refiner, Refiner)
-    assert load_refiner("tiny") is None
+    assert load_refiner(*resolve_model("tiny")) is None
 
 
 def test_refine_trains_on_unseen_scenes_resumes_and_writes_a_model_the_relighter_runs(tmp_path, capsys):
@@ -174,3 +174,6 @@ def test_refine_trains_on_unseen_scenes_resumes_and_writes_a_model_the_relighter
     assert "another shape" in capsys.readouterr().err
     spec, _, _ = load_model(model)
     assert spec.residual
+    with pytest.raises(SystemExit):
+        refine.main([*args[:1], str(tmp_path), *args[2:]])
+    assert f"--model {tmp_path} holds no dit.safetensors" in capsys.readouterr().err

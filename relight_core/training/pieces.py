@@ -31,6 +31,11 @@ def _write_subset(z, path: Path, indices: list[int]) -> float:
     return path.stat().st_size / 1e6
 
 
+def pack_names(paths: list[Path]) -> set[str]:
+    """The scene names the packs at `paths` hold (what `--seen` compares by)."""
+    return {str(n) for path in paths for n in np.load(path, allow_pickle=False)["names"]}
+
+
 def cut_pack(pack: Path, out: Path, pieces_mb: list[float], seen: Path | list[Path] | None = None,
              val: int = 0) -> dict:
     """Write `out/val.npz` (if `val`) and `out/p<i>.npz`, each at most `pieces_mb[i-1]` MB; returns the
@@ -40,7 +45,7 @@ def cut_pack(pack: Path, out: Path, pieces_mb: list[float], seen: Path | list[Pa
         z = {k: z[k] for k in z.files}
     names = [str(n) for n in z["names"]]
     seen = [] if seen is None else [seen] if isinstance(seen, (str, Path)) else list(seen)
-    held = {str(n) for path in seen for n in np.load(path, allow_pickle=False)["names"]}
+    held = pack_names(seen)
     unseen = [i for i, name in enumerate(names) if name not in held]
     if val > len(unseen):
         raise ValueError(f"--val {val} asks for more scenes than the {len(unseen)} not in the --seen packs")

@@ -41,6 +41,7 @@ from relight_core.refiner import REFINER_FILE, Refiner, RefinerConfig
 from relight_core.tokenizer import build_tokenizer
 from relight_core.training.fast import make_batch, sample_relight
 from relight_core.training.pack import load_packs
+from relight_core.training.pieces import pack_names
 from relight_core.upsample import smooth_offset
 
 CHECKPOINT_FILE = "checkpoint.pt"
@@ -51,7 +52,7 @@ CHECKPOINT_FILE = "checkpoint.pt"
 def unseen_items(names: list[str], seen: list[Path], scenes: int | None) -> list[tuple[int, int]]:
     """(scene index, target light) for both directions of the first `scenes` scenes no `seen` pack
     holds (`train` passes the validation pack among them: its scenes never train)."""
-    held = {str(n) for path in seen for n in np.load(path, allow_pickle=False)["names"]}
+    held = pack_names(seen)
     chosen = [i for i, name in enumerate(names) if str(name) not in held]
     chosen = chosen if scenes is None else chosen[:scenes]
     return [(i, t) for i in chosen for t in (0, 1)]
