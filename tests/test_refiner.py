@@ -7,7 +7,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 import torch
-from safetensors.torch import save_file
+from safetensors.torch import load_file, save_file
 
 from relight_core.checkpoint import ModelSpec, load_model, load_refiner, resolve_model
 from relight_core.dit import DiTConfig, JointDiT
@@ -143,25 +143,45 @@ def test_refine_trains_on_unseen_scenes_resumes_and_writes_a_model_the_relighter
     args = ["--model", str(model), "--pack", str(tmp_path / "p.npz"), "--seen", str(tmp_path / "seen.npz"),
             "--val-pack", str(tmp_path / "val.npz"), "--out", str(tmp_path / "run"), "--widths", "4", "8",
             "--batch", "2", "--minutes", "0.03", "--val-every-minutes", "0.01", "--warmup", "2",
-            "--model-dir", str(tmp_path / "refined")]
+            "--model-dir", str(tmp_path / "refined"), "--scenes", "1"]
     assert refine.main(args) == 0
     best = json.loads((tmp_path / "run" / "best.json").read_text())
-    # It trains on the scenes neither the DiT (--seen) nor the validation saw: 2 scenes × 2 directions.
-    assert best["train_items"] == 4 and best["val_items"] == 4
-    cached = np.load(tmp_path / "run" / "outputs-train.npz")
-    assert set(cached["names"]) == {"scene_000002", "scene_000003"} and cached["relit"].shape == (4, 3, 32, 32)
+    # It trains on the first scene neither the DiT (--seen) nor the validation saw, both directions.
+    assert best["train_items"] == 2 and best["val_items"] == 4
+    first = dict(np.load(tmp_path / "run" / "outputs-train.npz"))
+    assert list(first["names"]) == ["scene_000002"] * 2 and first["relit"].shape == (2, 3, 32, 32)
     log = [json.loads(line) for line in (tmp_path / "run" / "log.jsonl").read_text().splitlines()]
     assert json.loads((tmp_path / "refined" / "config.json").read_text())["refiner"]["clips"] == ["relit", "albedo"]
-    # Run again with more minutes: it resumes at the step it stopped (no new DiT outputs) and goes on,
-    # here for the albedo alone, which the model folder it writes then says.
+    # Run again with more minutes and scenes: it resumes at the step it stopped, computes the DiT's
+    # outputs for the new scene only (the cached ones are kept as they were) and goes on, here for the
+    # albedo alone, which the model folder it writes then says.
     args[args.index("--minutes") + 1] = "0.06"
+    args[args.index("--scenes") + 1] = "2"
     args += ["--clips", "albedo"]
     capsys.readouterr()
     assert refine.main(args) == 0
     out = capsys.readouterr().out
-    assert f"resumed at step {log[-1]['step']}" in out and "DiT outputs" not in out
+    assert f"resumed at step {log[-1]['step']}" in out
+    assert "holds 2 of these 4 items; computing the other 2" in out and "DiT outputs: 2 of 2 items" in out
+    cached = np.load(tmp_path / "run" / "outputs-train.npz")
+    assert list(cached["names"]) == ["scene_000002"] * 2 + ["scene_000003"] * 2
+    assert list(cached["targets"]) == [0, 1, 0, 1]
+    assert np.array_equal(cached["relit"][:2], first["relit"]) and np.array_equal(cached["albedo"][:2], first["albedo"])
+    assert json.loads((tmp_path / "run" / "best.json").read_text())["train_items"] == 4
     more = [json.loads(line) for line in (tmp_path / "run" / "log.jsonl").read_text().splitlines()]
     assert more[-1]["step"] > log[-1]["step"]
+    # A new run folder can start from that refiner (--init): at lr 0 its best is those very weights.
+    init = ["--init", str(tmp_path / "run" / "refiner.safetensors")]
+    fresh = [*args[:args.index("--out") + 1], str(tmp_path / "run2"), *args[args.index("--out") + 2:], *init]
+    fresh[fresh.index("--model-dir") + 1] = str(tmp_path / "refined2")
+    assert refine.main([*fresh, "--lr", "0", "--minutes", "0.02"]) == 0
+    assert "starting from the refiner in" in capsys.readouterr().out
+    trained, again = (load_file(tmp_path / r / "refiner.safetensors") for r in ("run", "run2"))
+    assert all(torch.equal(trained[k], again[k]) for k in trained)
+    with pytest.raises(SystemExit):
+        refine.main([*fresh[:fresh.index("--widths")], "--widths", "4", "8", "8", "--out", str(tmp_path / "run3"),
+                     "--minutes", "0.02", *init])
+    assert "is not a refiner of this shape" in capsys.readouterr().err
     relighter = Relighter.load(str(tmp_path / "refined"))
     assert relighter.refiner is not None and relighter.refiner.config.base == "filtered"
     assert relighter.refiner.config.clips == ("albedo",)

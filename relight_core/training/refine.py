@@ -7,7 +7,8 @@
    (its residual gains applied), for both directions of the first `--scenes` scenes of the packs that
    no `--seen` pack holds (scenes the DiT never trained on, so that its errors are those it makes on
    new photos), and for the validation pack. They are the slow part (~0.25 s an item on one CPU
-   thread) and are kept in `--out/outputs-*.npz`, so a rerun or a second run does not repeat them.
+   thread) and are kept in `--out/outputs-*.npz`, so a rerun does not repeat them, and a run given
+   more `--scenes` computes only the new ones.
 2. **Training.** The refiner learns a correction of those frames towards the rendered truth: per
    item the log of the squared error after the evaluation protocol's per-channel scale fit, plus half
    the log of the plain squared error, on the foreground mask, relit and albedo alike (or the `--clips`
@@ -15,7 +16,9 @@
    flips; AdamW with a warm-up; an EMA of the weights. Every `--val-every-minutes` the EMA is scored
    on the validation pack by the protocol's PSNR (evaluation.metrics) and the best one is kept.
 3. **Stop and resume.** A checkpoint (weights, EMA, optimiser, generator, step, time used) is written
-   at every validation; the same command resumes from it exactly and stops when `--minutes` are used.
+   at every validation; the same command resumes from it exactly and stops when `--minutes` are used
+   (a different `--lr` or `--clips` applies from there). `--init refiner.safetensors` starts a new run
+   folder from a refiner trained before (weights and EMA; a new optimiser and step count).
 
 The best refiner goes to `--out/refiner.safetensors` (scores in `--out/best.json`); `--model-dir`
 also writes a model folder: the model's config.json and DiT with the refiner added.
@@ -32,7 +35,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from safetensors.torch import save_file
+from safetensors.torch import load_file, save_file
 
 from relight_core.checkpoint import CONFIG_FILE, DIT_FILE, load_model
 from relight_core.evaluation.metrics import protocol_psnr
@@ -87,15 +90,31 @@ def dit_outputs(model: Path, pack: dict, items: list[tuple[int, int]], batch: in
 
 
 def cached_outputs(path: Path, model: Path, pack: dict, items: list[tuple[int, int]], log=print) -> dict:
-    """`dit_outputs`, read from `path` when it holds these very items of these scenes, else computed there."""
+    """`dit_outputs` for `items`, kept in `path`: the items it holds already (by scene name and direction)
+    are read from it, only the others are computed, and the file is rewritten with all of them in order."""
     names = np.array([str(pack["names"][s]) for s, _ in items])
     targets = np.array([t for _, t in items])
+    out, missing = None, list(range(len(items)))
     if path.is_file():
         with np.load(path, allow_pickle=False) as z:
             if np.array_equal(z["names"], names) and np.array_equal(z["targets"], targets):
                 return {"relit": z["relit"], "albedo": z["albedo"]}
-        log(f"{path} holds other items; computing them again")
-    out = dit_outputs(model, pack, items, log=log)
+            where = {(str(n), int(t)): i for i, (n, t) in enumerate(zip(z["names"], z["targets"]))}
+            rows = [where.get((n, int(t))) for n, t in zip(names, targets)]
+            missing = [i for i, r in enumerate(rows) if r is None]
+            hits = [i for i, r in enumerate(rows) if r is not None]
+            if hits:
+                out = {k: np.empty((len(items), *z[k].shape[1:]), np.uint8) for k in ("relit", "albedo")}
+                for key, frames in out.items():
+                    frames[hits] = z[key][[rows[i] for i in hits]]
+        log(f"{path} holds {len(items) - len(missing)} of these {len(items)} items; computing the other {len(missing)}")
+    if missing:
+        fresh = dit_outputs(model, pack, [items[i] for i in missing], log=log)
+        if out is None:
+            out = fresh
+        else:
+            for key, frames in out.items():
+                frames[missing] = fresh[key]
     np.savez(path, names=names, targets=targets, **out)
     return out
 
@@ -221,6 +240,10 @@ def train(args: argparse.Namespace, log=print) -> dict:
         state = json.loads(saved["state"])
         log(f"resumed at step {state['step']} ({state['seconds'] / 60:.1f} min used)")
     else:
+        if args.init is not None:
+            initial_weights(model, args.init)
+            ema.load_state_dict(model.state_dict())
+            log(f"starting from the refiner in {args.init} (a new optimiser)")
         log(f"start (the DiT's frames on the validation pack): {state['start']}")
     records = open(out / "log.jsonl", "a")
 
@@ -280,6 +303,19 @@ def train(args: argparse.Namespace, log=print) -> dict:
     return best
 
 
+def initial_weights(refiner: Refiner, path: Path) -> None:
+    """Load `--init`'s refiner weights (safetensors) into `refiner`, or fail in one sentence."""
+    try:
+        state = load_file(str(path))
+    except Exception as exc:  # safetensors raises its own error types for corrupt headers
+        raise ValueError(f"--init {path} is not a readable safetensors file ({exc})") from exc
+    try:
+        refiner.load_state_dict(state)
+    except RuntimeError as exc:
+        raise ValueError(f"--init {path} is not a refiner of this shape; give the --widths, --blocks and --base "
+                         "it was trained with") from exc
+
+
 def write_model(model: Path, run: Path, folder: Path, best: dict) -> Path:
     """A model folder: `model`'s DiT and config.json with the run's refiner added."""
     folder.mkdir(parents=True, exist_ok=True)
@@ -302,6 +338,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--val-pack", type=Path, required=True, help="held-out scenes to choose the refiner on")
     parser.add_argument("--out", type=Path, required=True)
     parser.add_argument("--model-dir", type=Path, help="also write a model folder with the refiner here")
+    parser.add_argument("--init", type=Path, help="a new run starts from this refiner.safetensors (a run that "
+                        "resumes from its checkpoint ignores it)")
     parser.add_argument("--minutes", type=float, default=30.0)
     parser.add_argument("--lr", type=float, default=1.5e-3)
     parser.add_argument("--batch", type=int, default=16)
@@ -319,6 +357,8 @@ def main(argv: list[str] | None = None) -> int:
     for path in [*args.pack, *args.seen, args.val_pack]:
         if not path.is_file():
             parser.error(f"no pack at {path}")
+    if args.init is not None and not args.init.is_file():
+        parser.error(f"no refiner weights at --init {args.init}")
     if not (args.model / DIT_FILE).is_file():
         parser.error(f"--model {args.model} holds no {DIT_FILE}; give a model folder")
     try:
