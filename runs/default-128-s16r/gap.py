@@ -1,5 +1,5 @@
 # train-vs-val gap of the refine/final EMA (overfitting check)
-import sys, torch, numpy as np
+import torch, numpy as np
 from pathlib import Path
 from relight_core.training import refine as R
 from relight_core.training.pack import load_packs
