@@ -238,7 +238,8 @@ def train(args: argparse.Namespace, log=print) -> dict:
         optimizer.load_state_dict(saved["optimizer"])
         generator.set_state(saved["generator"])
         state = json.loads(saved["state"])
-        log(f"resumed at step {state['step']} ({state['seconds'] / 60:.1f} min used)")
+        log(f"resumed at step {state['step']} ({state['seconds'] / 60:.1f} min used)"
+            + (f"; --init {args.init} is for a new run folder and is not used" if args.init is not None else ""))
     else:
         if args.init is not None:
             initial_weights(model, args.init)
