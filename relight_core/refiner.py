@@ -62,6 +62,20 @@ class RefinerConfig:
         return 9 if self.base == "raw" else 15
 
 
+def network_input(base: str, inputs: torch.Tensor, relit: torch.Tensor, albedo: torch.Tensor,
+                  filtered: tuple[torch.Tensor, torch.Tensor] | None = None
+                  ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The refiner's network input [B,9|15,H,W] (the input, the DiT's relit and albedo frames and, for
+    base "filtered", those frames after the offset filter; all [B,3,H,W] in [-1, 1]) and the relit and
+    albedo frames its corrections add to. The one place the channel order is set, for training and use."""
+    parts = [inputs, relit, albedo]
+    if base == "filtered":
+        if filtered is None:
+            raise ValueError("this refiner adds to the filtered frames; pass them")
+        parts += list(filtered)
+        relit, albedo = filtered
+    return torch.cat(parts, dim=1), relit, albedo
+
 
 class _Block(nn.Module):
     def __init__(self, width: int):
@@ -109,13 +123,8 @@ class Refiner(nn.Module):
         """Refined (relit, albedo) [B,3,H,W] in [-1, 1] from the input and the DiT's frames [B,3,H,W]
         in [-1, 1] (and, for base "filtered", those frames after the offset filter); any frame size
         (each level's result is brought back to its skip's size)."""
-        parts = [inputs, relit, albedo]
-        if self.config.base == "filtered":
-            if filtered is None:
-                raise ValueError("this refiner adds to the filtered frames; pass them")
-            parts += list(filtered)
-            relit, albedo = filtered
-        delta = self.forward(torch.cat(parts, dim=1)).to(relit.dtype)
+        x, relit, albedo = network_input(self.config.base, inputs, relit, albedo, filtered)
+        delta = self.forward(x).to(relit.dtype)
         if "relit" in self.config.clips:
             relit = (relit + delta[:, :3]).clamp(-1, 1)
         if "albedo" in self.config.clips:

@@ -182,6 +182,9 @@ def test_refine_trains_on_unseen_scenes_resumes_and_writes_a_model_the_relighter
         refine.main([*fresh[:fresh.index("--widths")], "--widths", "4", "8", "8", "--out", str(tmp_path / "run3"),
                      "--minutes", "0.02", *init])
     assert "is not a refiner of this shape" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        refine.main([*fresh[:fresh.index("--init")], "--init", str(tmp_path / "nowhere.safetensors")])
+    assert "no refiner weights at --init" in capsys.readouterr().err
     relighter = Relighter.load(str(tmp_path / "refined"))
     assert relighter.refiner is not None and relighter.refiner.config.base == "filtered"
     assert relighter.refiner.config.clips == ("albedo",)

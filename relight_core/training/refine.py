@@ -40,7 +40,7 @@ from safetensors.torch import load_file, save_file
 from relight_core.checkpoint import CONFIG_FILE, DIT_FILE, load_model
 from relight_core.evaluation.metrics import protocol_psnr
 from relight_core.precision import resolve_precision
-from relight_core.refiner import REFINER_FILE, Refiner, RefinerConfig
+from relight_core.refiner import REFINER_FILE, Refiner, RefinerConfig, network_input
 from relight_core.tokenizer import build_tokenizer
 from relight_core.training.fast import make_batch, sample_relight
 from relight_core.training.pack import load_packs
@@ -170,10 +170,8 @@ def model_inputs(data: dict, index, base: str, flip: torch.Tensor | None = None)
             x = torch.where(flip.view(-1, *([1] * (x.dim() - 1))), x.flip(-1), x)
         return x
 
-    parts = [_signed(get(k)) for k in ("input", "relit", "albedo")]
-    if base == "filtered":
-        parts += [_signed(get("f_relit")), _signed(get("f_albedo"))]
-    return torch.cat(parts, dim=1), parts[-2], parts[-1], get
+    filtered = (_signed(get("f_relit")), _signed(get("f_albedo"))) if base == "filtered" else None
+    return (*network_input(base, *(_signed(get(k)) for k in ("input", "relit", "albedo")), filtered), get)
 
 
 @torch.no_grad()
