@@ -128,6 +128,31 @@ def test_a_refiner_in_config_json_round_trips_and_a_bad_one_or_a_missing_file_is
     assert load_refiner(*resolve_model("tiny")) is None
 
 
+@pytest.mark.parametrize("blocks", [1, 2])
+def test_a_refiner_grown_by_a_level_gives_the_same_output_and_then_trains_its_new_level(tmp_path, blocks):
+    torch.manual_seed(blocks)
+    small = Refiner(RefinerConfig(widths=(4, 8, 12), blocks=blocks, base="filtered"))
+    for parameter in small.parameters():          # a trained-looking refiner: every weight counts
+        torch.nn.init.normal_(parameter, std=0.2)
+    save_file({k: v.contiguous() for k, v in small.state_dict().items()}, tmp_path / "small.safetensors")
+    grown = Refiner(RefinerConfig(widths=(4, 8, 12, 16), blocks=blocks, base="filtered"))
+    assert refine.initial_weights(grown, tmp_path / "small.safetensors").startswith("grown by a level")
+    x = torch.randn(2, 15, 40, 36)                # not a multiple of 8: each level's resize is exercised
+    with torch.no_grad():
+        assert torch.allclose(grown(x), small(x), atol=1e-5)
+    # The new bottom starts out of the way, not dead: one step of training gives it a gradient
+    # through the merge's weight, and the output moves.
+    grown(x).square().mean().backward()
+    merge = grown.up[2].weight.grad[:, :16]
+    assert merge.abs().sum() > 0 and all(p.grad is not None for p in grown.mid.parameters())
+    # Two levels more, another base or another block count is one sentence.
+    for config in (RefinerConfig(widths=(4, 8, 12, 16, 16), blocks=blocks, base="filtered"),
+                   RefinerConfig(widths=(4, 8, 12, 16), blocks=blocks, base="raw"),
+                   RefinerConfig(widths=(4, 8, 12, 16), blocks=blocks + 1, base="filtered")):
+        with pytest.raises(ValueError, match="nor one with a level fewer"):
+            refine.initial_weights(Refiner(config), tmp_path / "small.safetensors")
+
+
 def test_refine_trains_on_unseen_scenes_resumes_and_writes_a_model_the_relighter_runs(tmp_path, capsys):
     root = write_pack_dataset(tmp_path / "data", scenes=4)
     write_pack(root, "train", tmp_path / "p.npz", lighting_size=8)
@@ -179,9 +204,9 @@ def test_refine_trains_on_unseen_scenes_resumes_and_writes_a_model_the_relighter
     trained, again = (load_file(tmp_path / r / "refiner.safetensors") for r in ("run", "run2"))
     assert all(torch.equal(trained[k], again[k]) for k in trained)
     with pytest.raises(SystemExit):
-        refine.main([*fresh[:fresh.index("--widths")], "--widths", "4", "8", "8", "--out", str(tmp_path / "run3"),
+        refine.main([*fresh[:fresh.index("--widths")], "--widths", "4", "8", "8", "8", "--out", str(tmp_path / "run3"),
                      "--minutes", "0.02", *init])
-    assert "is not a refiner of this shape" in capsys.readouterr().err
+    assert "is not a refiner of this shape nor one with a level fewer" in capsys.readouterr().err
     with pytest.raises(SystemExit):
         refine.main([*fresh[:fresh.index("--init")], "--init", str(tmp_path / "nowhere.safetensors")])
     assert "no refiner weights at --init" in capsys.readouterr().err

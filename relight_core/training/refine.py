@@ -18,7 +18,8 @@
 3. **Stop and resume.** A checkpoint (weights, EMA, optimiser, generator, step, time used) is written
    at every validation; the same command resumes from it exactly and stops when `--minutes` are used
    (a different `--lr` or `--clips` applies from there). `--init refiner.safetensors` starts a new run
-   folder from a refiner trained before (weights and EMA; a new optimiser and step count).
+   folder from a refiner trained before (weights and EMA; a new optimiser and step count): one of the
+   same shape, or one with a level fewer, grown into this shape with the same output (`grown_state`).
 
 The best refiner goes to `--out/refiner.safetensors` (scores in `--out/best.json`); `--model-dir`
 also writes a model folder: the model's config.json and DiT with the refiner added.
@@ -182,7 +183,7 @@ def validate(refiner: Refiner, data: dict, autocast: bool) -> dict[str, float]:
         index = slice(start, start + 32)
         x, r, a, _ = model_inputs(data, index, refiner.config.base)
         with torch.autocast("cpu", dtype=torch.bfloat16, enabled=autocast):
-            delta = refiner(x).float()
+            delta = refiner(x.contiguous(memory_format=torch.channels_last)).float()
         relit.append(((r + delta[:, :3]).clamp(-1, 1) + 1) / 2)
         albedo.append(((a + delta[:, 3:]).clamp(-1, 1) + 1) / 2)
     return scores(data, torch.cat(relit).permute(0, 2, 3, 1).numpy(), torch.cat(albedo).permute(0, 2, 3, 1).numpy())
@@ -216,7 +217,7 @@ def train(args: argparse.Namespace, log=print) -> dict:
     del val_pack
     autocast = resolve_precision("auto", torch.device("cpu")) == torch.bfloat16
 
-    model = Refiner(config)
+    model = Refiner(config).to(memory_format=torch.channels_last)   # ~1.4× faster convolutions on a CPU
     ema = copy.deepcopy(model).eval().requires_grad_(False)
     optimizer = torch.optim.AdamW(model.parameters(), lr=args.lr, weight_decay=0.0)
     generator = torch.Generator().manual_seed(args.seed)
@@ -240,9 +241,9 @@ def train(args: argparse.Namespace, log=print) -> dict:
             + (f"; --init {args.init} is for a new run folder and is not used" if args.init is not None else ""))
     else:
         if args.init is not None:
-            initial_weights(model, args.init)
+            how = initial_weights(model, args.init)
             ema.load_state_dict(model.state_dict())
-            log(f"starting from the refiner in {args.init} (a new optimiser)")
+            log(f"starting from the refiner in {args.init}, {how} (a new optimiser)")
         log(f"start (the DiT's frames on the validation pack): {state['start']}")
     records = open(out / "log.jsonl", "a")
 
@@ -264,7 +265,7 @@ def train(args: argparse.Namespace, log=print) -> dict:
         for group in optimizer.param_groups:
             group["lr"] = args.lr * min(1.0, (state["step"] + 1) / args.warmup)
         with torch.autocast("cpu", dtype=torch.bfloat16, enabled=autocast):
-            delta = model(x).float()
+            delta = model(x.contiguous(memory_format=torch.channels_last)).float()
         mask = get("mask")
         loss = sum(item_loss(base + delta[:, k:k + 3], _signed(get(target)), mask)
                    for clip, base, k, target in (("relit", r, 0, "target"), ("albedo", a, 3, "albedo_t"))
@@ -302,17 +303,55 @@ def train(args: argparse.Namespace, log=print) -> dict:
     return best
 
 
-def initial_weights(refiner: Refiner, path: Path) -> None:
-    """Load `--init`'s refiner weights (safetensors) into `refiner`, or fail in one sentence."""
+def initial_weights(refiner: Refiner, path: Path) -> str:
+    """Load `--init`'s refiner weights (safetensors) into `refiner`, or fail in one sentence. A refiner of
+    the same shape loads as it is; one with a level fewer (the same widths but the last, blocks and base)
+    is grown into this one (`grown_state`), giving the same output. Returns which it was."""
     try:
         state = load_file(str(path))
     except Exception as exc:  # safetensors raises its own error types for corrupt headers
         raise ValueError(f"--init {path} is not a readable safetensors file ({exc})") from exc
     try:
         refiner.load_state_dict(state)
-    except RuntimeError as exc:
-        raise ValueError(f"--init {path} is not a refiner of this shape; give the --widths, --blocks and --base "
-                         "it was trained with") from exc
+        return "as it is"
+    except RuntimeError:
+        pass
+    try:
+        refiner.load_state_dict(grown_state(state, refiner))
+        return f"grown by a level ({refiner.config.widths[-1]} channels at 1/{2 ** (len(refiner.config.widths) - 1)} size)"
+    except (RuntimeError, KeyError, ValueError) as exc:
+        raise ValueError(f"--init {path} is not a refiner of this shape nor one with a level fewer; give the "
+                         "--widths, --blocks and --base it was trained with (or those plus one more width)") from exc
+
+
+def grown_state(state: dict[str, torch.Tensor], refiner: Refiner) -> dict[str, torch.Tensor]:
+    """The weights of a refiner with one level fewer than `refiner`, grown into `refiner`'s shape so that
+    its output is unchanged: the old bottom's 2·blocks residual blocks become the new last encoder and
+    decoder level (first half, second half), the new bottom (its down-sampling and middle blocks) starts
+    fresh, and the new level's 1×1 merge passes the skip through unchanged and gives the new bottom's
+    channels zero weight, so they start to count only as training moves that weight."""
+    levels, blocks = len(refiner.config.widths), refiner.config.blocks
+    fresh = refiner.state_dict()
+    if any(f"down.{levels - 2}.{k}" in state or f"up.{levels - 2}.{k}" in state for k in ("weight", "bias")):
+        raise ValueError("not a refiner with a level fewer")
+    grown = {}
+    for key, value in state.items():
+        head, _, rest = key.partition(".")
+        if head == "mid":
+            index, _, tail = rest.partition(".")
+            index = int(index)
+            grown[f"enc.{levels - 2}.{index}.{tail}" if index < blocks else f"dec.{levels - 2}.{index - blocks}.{tail}"] = value
+        else:
+            grown[key] = value
+    width = refiner.config.widths[-2]
+    merge = torch.zeros_like(fresh[f"up.{levels - 2}.weight"])          # [width, next + width, 1, 1]
+    merge[:, -width:, 0, 0] = torch.eye(width)                          # the skip passes through
+    grown[f"up.{levels - 2}.weight"] = merge
+    grown[f"up.{levels - 2}.bias"] = torch.zeros_like(fresh[f"up.{levels - 2}.bias"])
+    for key, value in fresh.items():
+        if key.startswith(("mid.", f"down.{levels - 2}.")):
+            grown[key] = value
+    return grown
 
 
 def write_model(model: Path, run: Path, folder: Path, best: dict) -> Path:
@@ -337,8 +376,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--val-pack", type=Path, required=True, help="held-out scenes to choose the refiner on")
     parser.add_argument("--out", type=Path, required=True)
     parser.add_argument("--model-dir", type=Path, help="also write a model folder with the refiner here")
-    parser.add_argument("--init", type=Path, help="a new run starts from this refiner.safetensors (a run that "
-                        "resumes from its checkpoint ignores it)")
+    parser.add_argument("--init", type=Path, help="a new run starts from this refiner.safetensors, of this shape "
+                        "or with a level fewer (a run that resumes from its checkpoint ignores it)")
     parser.add_argument("--minutes", type=float, default=30.0)
     parser.add_argument("--lr", type=float, default=1.5e-3)
     parser.add_argument("--batch", type=int, default=16)
