@@ -97,8 +97,8 @@ class ModelSpec:
             except (ValueError, TypeError, AttributeError):
                 raise InputError(f"The model's config.json has refiner {kwargs['refiner']!r}; it takes "
                                  '"widths" (1 to 6 whole numbers from 1 to 1024), "blocks" (0 to 8), "base" '
-                                 '("raw" or "filtered") and "clips" (["relit", "albedo"] or one of them), or '
-                                 'leave it out.') from None
+                                 '("raw" or "filtered"), "clips" (["relit", "albedo"] or one of them) and '
+                                 '"flip_average" (true or false), or leave it out.') from None
         return cls(**kwargs)
 
 

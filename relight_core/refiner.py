@@ -12,7 +12,8 @@ where the base is the DiT's frames ("raw") or those after the model's offset fil
 `ModelSpec.offset_filter`, the hand-tuned form of the same idea), and only the `clips` it is
 configured for are corrected (the shipped one: the albedo alone; docs/QUALITY.md says why). It never
 sees the light: whatever follows the probe comes from the DiT. Its last layer starts at zero, so an
-untrained refiner returns its base unchanged.
+untrained refiner returns its base unchanged. With `flip_average` its correction is the mean of the
+one for the frames and the one for their mirror image flipped back (two passes, one batch).
 
 Weights: `refiner.safetensors` next to the DiT's, its shape in config.json's "refiner" entry
 (`RefinerConfig`). Trained by `python -m relight_core.training.refine` on the frozen DiT's outputs.
@@ -36,11 +37,13 @@ class RefinerConfig:
     base: str = "raw"                             # what the corrections add to: the DiT's frames ("raw") or
                                                   # those after the model's offset filter ("filtered")
     clips: tuple[str, ...] = ("relit", "albedo")  # the frames it corrects; the others stay the base's
+    flip_average: bool = False                    # average the correction with the mirror image's
 
     @classmethod
     def from_dict(cls, data: dict) -> "RefinerConfig":
         widths, blocks = data.get("widths", list(cls.widths)), data.get("blocks", cls.blocks)
         base, clips = data.get("base", cls.base), data.get("clips", list(cls.clips))
+        flip_average = data.get("flip_average", cls.flip_average)
 
         def whole(v, low, high):
             return isinstance(v, int) and not isinstance(v, bool) and low <= v <= high
@@ -48,14 +51,17 @@ class RefinerConfig:
         if (not isinstance(widths, (list, tuple)) or not 1 <= len(widths) <= 6
                 or not all(whole(w, 1, 1024) for w in widths) or not whole(blocks, 0, 8)
                 or base not in ("raw", "filtered") or not isinstance(clips, (list, tuple))
-                or not clips or not set(clips) <= {"relit", "albedo"}):
-            raise ValueError(f"a refiner takes 1–6 widths from 1 to 1024, 0–8 blocks, base raw or filtered "
-                             f"and clips relit and/or albedo; got {data!r}")
+                or not clips or not set(clips) <= {"relit", "albedo"} or not isinstance(flip_average, bool)):
+            raise ValueError(f"a refiner takes 1–6 widths from 1 to 1024, 0–8 blocks, base raw or filtered, "
+                             f"clips relit and/or albedo and flip_average true or false; got {data!r}")
         return cls(widths=tuple(widths), blocks=blocks, base=base,
-                   clips=tuple(c for c in ("relit", "albedo") if c in clips))
+                   clips=tuple(c for c in ("relit", "albedo") if c in clips), flip_average=flip_average)
 
     def to_dict(self) -> dict:
-        return {"widths": list(self.widths), "blocks": self.blocks, "base": self.base, "clips": list(self.clips)}
+        out = {"widths": list(self.widths), "blocks": self.blocks, "base": self.base, "clips": list(self.clips)}
+        if self.flip_average:
+            out["flip_average"] = True
+        return out
 
     @property
     def in_channels(self) -> int:
@@ -118,13 +124,21 @@ class Refiner(nn.Module):
             h = self.dec[i](self.up[i](torch.cat([h, skips[i]], dim=1)))
         return self.head(F.silu(h))
 
+    def correction(self, x: torch.Tensor) -> torch.Tensor:
+        """The corrections [B,6,H,W] for network input `x` [B,9|15,H,W] (`network_input`): the network's
+        own, or with `flip_average` the mean of it and the mirror image's flipped back."""
+        if not self.config.flip_average:
+            return self.forward(x)
+        both = self.forward(torch.cat([x, x.flip(-1)]))
+        return (both[:len(x)] + both[len(x):].flip(-1)) / 2
+
     def refine(self, inputs: torch.Tensor, relit: torch.Tensor, albedo: torch.Tensor,
                filtered: tuple[torch.Tensor, torch.Tensor] | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """Refined (relit, albedo) [B,3,H,W] in [-1, 1] from the input and the DiT's frames [B,3,H,W]
         in [-1, 1] (and, for base "filtered", those frames after the offset filter); any frame size
         (each level's result is brought back to its skip's size)."""
         x, relit, albedo = network_input(self.config.base, inputs, relit, albedo, filtered)
-        delta = self.forward(x).to(relit.dtype)
+        delta = self.correction(x).to(relit.dtype)
         if "relit" in self.config.clips:
             relit = (relit + delta[:, :3]).clamp(-1, 1)
         if "albedo" in self.config.clips:

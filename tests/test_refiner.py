@@ -128,6 +128,40 @@ def test_a_refiner_in_config_json_round_trips_and_a_bad_one_or_a_missing_file_is
     assert load_refiner(*resolve_model("tiny")) is None
 
 
+def test_a_flip_averaged_refiner_corrects_a_frame_and_its_mirror_image_alike_and_says_so_in_its_config():
+    torch.manual_seed(4)
+    plain = Refiner(RefinerConfig(widths=(4, 8), blocks=1, base="filtered", clips=("albedo",)))
+    for parameter in plain.parameters():
+        torch.nn.init.normal_(parameter, std=0.1)
+    config = RefinerConfig.from_dict({**plain.config.to_dict(), "flip_average": True})
+    assert config.to_dict()["flip_average"] is True and "flip_average" not in plain.config.to_dict()
+    averaged = Refiner(config)
+    averaged.load_state_dict(plain.state_dict())
+    x = torch.rand(2, 15, 16, 20) * 2 - 1
+    with torch.no_grad():
+        expected = (plain(x) + plain(x.flip(-1)).flip(-1)) / 2
+        assert torch.allclose(averaged.correction(x), expected, atol=1e-6)
+        assert not torch.allclose(plain.correction(x), expected, atol=1e-3)    # the plain one differs
+        # Mirror the frames and the averaged correction mirrors exactly with them.
+        assert torch.allclose(averaged.correction(x.flip(-1)), averaged.correction(x).flip(-1), atol=1e-6)
+        frames = [x[:, 3 * k:3 * k + 3] for k in range(5)]
+        relit, albedo = averaged.refine(*frames[:3], filtered=(frames[3], frames[4]))
+    assert torch.equal(relit, frames[3])                                         # albedo-only: relit is the base's
+    assert torch.allclose(albedo, (frames[4] + expected[:, 3:]).clamp(-1, 1), atol=1e-6)
+    with pytest.raises(ValueError):
+        RefinerConfig.from_dict({"flip_average": "yes"})
+
+
+def test_colour_permutation_reorders_every_rgb_triple_of_an_item_alike():
+    images = torch.rand(3, 15, 4, 5)              # input, relit, albedo and the filtered frames
+    order = torch.tensor([[2, 0, 1], [0, 1, 2], [1, 2, 0]])
+    out = refine.permute_colours(images, order)
+    for item in range(3):
+        for frame in range(5):
+            for channel in range(3):
+                assert torch.equal(out[item, 3 * frame + channel], images[item, 3 * frame + order[item, channel]])
+
+
 @pytest.mark.parametrize("blocks", [1, 2])
 def test_a_refiner_grown_by_a_level_gives_the_same_output_and_then_trains_its_new_level(tmp_path, blocks):
     torch.manual_seed(blocks)
@@ -140,11 +174,16 @@ def test_a_refiner_grown_by_a_level_gives_the_same_output_and_then_trains_its_ne
     x = torch.randn(2, 15, 40, 36)                # not a multiple of 8: each level's resize is exercised
     with torch.no_grad():
         assert torch.allclose(grown(x), small(x), atol=1e-5)
-    # The new bottom starts out of the way, not dead: one step of training gives it a gradient
-    # through the merge's weight, and the output moves.
+    # The new bottom starts out of the way, not dead: the merge's zero weight on it has a gradient, and
+    # once one step has moved that weight the new blocks have gradients of their own.
     grown(x).square().mean().backward()
-    merge = grown.up[2].weight.grad[:, :16]
-    assert merge.abs().sum() > 0 and all(p.grad is not None for p in grown.mid.parameters())
+    assert grown.up[2].weight.grad[:, :16].abs().sum() > 0
+    assert all(p.grad.abs().sum() == 0 for p in grown.mid.parameters())
+    grown.zero_grad()
+    with torch.no_grad():
+        grown.up[2].weight[:, :16] += 1e-3
+    grown(x).square().mean().backward()
+    assert all(torch.isfinite(p.grad).all() and p.grad.abs().sum() > 0 for p in grown.mid.parameters())
     # Two levels more, another base or another block count is one sentence.
     for config in (RefinerConfig(widths=(4, 8, 12, 16, 16), blocks=blocks, base="filtered"),
                    RefinerConfig(widths=(4, 8, 12, 16), blocks=blocks, base="raw"),
@@ -182,7 +221,7 @@ def test_refine_trains_on_unseen_scenes_resumes_and_writes_a_model_the_relighter
     # albedo alone, which the model folder it writes then says.
     args[args.index("--minutes") + 1] = "0.06"
     args[args.index("--scenes") + 1] = "2"
-    args += ["--clips", "albedo"]
+    args += ["--clips", "albedo", "--permute-colours", "--flip-average"]
     capsys.readouterr()
     assert refine.main(args) == 0
     out = capsys.readouterr().out
@@ -212,7 +251,7 @@ def test_refine_trains_on_unseen_scenes_resumes_and_writes_a_model_the_relighter
     assert "no refiner weights at --init" in capsys.readouterr().err
     relighter = Relighter.load(str(tmp_path / "refined"))
     assert relighter.refiner is not None and relighter.refiner.config.base == "filtered"
-    assert relighter.refiner.config.clips == ("albedo",)
+    assert relighter.refiner.config.clips == ("albedo",) and relighter.refiner.config.flip_average
     frames = np.random.default_rng(3).random((1, 32, 32, 3)).astype(np.float32)
     result = relighter.relight(RelightRequest(frames=frames, probe=np.ones((16, 32, 3), np.float32)))
     assert result.relit.shape == frames.shape and np.isfinite(result.albedo).all()

@@ -175,6 +175,15 @@ def model_inputs(data: dict, index, base: str, flip: torch.Tensor | None = None)
     return (*network_input(base, *(_signed(get(k)) for k in ("input", "relit", "albedo")), filtered), get)
 
 
+def permute_colours(images: torch.Tensor, order: torch.Tensor) -> torch.Tensor:
+    """Every RGB triple of `images` [B,3k,H,W] with its channels reordered by `order` [B,3] (a permutation
+    per item): a scene whose paints and lights have their colours swapped is as plausible a scene, and
+    the refiner, which never sees the light, learns not to lean on a colour it saw in training."""
+    b, c, h, w = images.shape
+    index = order.view(b, 1, 3, 1, 1).expand(b, c // 3, 3, h, w)
+    return images.view(b, c // 3, 3, h, w).gather(2, index).reshape(b, c, h, w)
+
+
 @torch.no_grad()
 def validate(refiner: Refiner, data: dict, autocast: bool) -> dict[str, float]:
     """The protocol's mean PSNR (relit, albedo) of the refined frames on `data`."""
@@ -183,7 +192,7 @@ def validate(refiner: Refiner, data: dict, autocast: bool) -> dict[str, float]:
         index = slice(start, start + 32)
         x, r, a, _ = model_inputs(data, index, refiner.config.base)
         with torch.autocast("cpu", dtype=torch.bfloat16, enabled=autocast):
-            delta = refiner(x.contiguous(memory_format=torch.channels_last)).float()
+            delta = refiner.correction(x.contiguous(memory_format=torch.channels_last)).float()
         relit.append(((r + delta[:, :3]).clamp(-1, 1) + 1) / 2)
         albedo.append(((a + delta[:, 3:]).clamp(-1, 1) + 1) / 2)
     return scores(data, torch.cat(relit).permute(0, 2, 3, 1).numpy(), torch.cat(albedo).permute(0, 2, 3, 1).numpy())
@@ -202,7 +211,8 @@ def train(args: argparse.Namespace, log=print) -> dict:
     out.mkdir(parents=True, exist_ok=True)
     torch.set_num_threads(args.threads)
     spec, _, _ = load_model(args.model, "cpu")
-    config = RefinerConfig(widths=tuple(args.widths), blocks=args.blocks, base=args.base, clips=tuple(args.clips))
+    config = RefinerConfig(widths=tuple(args.widths), blocks=args.blocks, base=args.base, clips=tuple(args.clips),
+                           flip_average=args.flip_average)
     pack = load_packs(args.pack)
     items = unseen_items(pack["names"], [*args.seen, args.val_pack], args.scenes)
     if not items:
@@ -228,8 +238,8 @@ def train(args: argparse.Namespace, log=print) -> dict:
     checkpoint = out / CHECKPOINT_FILE
     if checkpoint.is_file():
         saved = torch.load(checkpoint, map_location="cpu", weights_only=True)
-        if {k: v for k, v in saved["config"].items() if k != "clips"} != {
-                k: v for k, v in config.to_dict().items() if k != "clips"}:
+        if {k: v for k, v in saved["config"].items() if k not in ("clips", "flip_average")} != {
+                k: v for k, v in config.to_dict().items() if k not in ("clips", "flip_average")}:
             raise ValueError(f"{checkpoint} is a refiner of another shape ({saved['config']}); "
                              "give a new --out or the same --widths/--blocks/--base")
         model.load_state_dict(saved["model"])
@@ -262,14 +272,18 @@ def train(args: argparse.Namespace, log=print) -> dict:
         index = torch.randint(0, count, (args.batch,), generator=generator)
         flip = torch.rand(args.batch, generator=generator) < 0.5
         x, r, a, get = model_inputs(train_data, index, config.base, flip)
+        targets = {"relit": _signed(get("target")), "albedo": _signed(get("albedo_t"))}
+        if args.permute_colours:
+            order = torch.argsort(torch.rand(args.batch, 3, generator=generator), dim=1)
+            x, r, a = (permute_colours(t, order) for t in (x, r, a))
+            targets = {k: permute_colours(t, order) for k, t in targets.items()}
         for group in optimizer.param_groups:
             group["lr"] = args.lr * min(1.0, (state["step"] + 1) / args.warmup)
         with torch.autocast("cpu", dtype=torch.bfloat16, enabled=autocast):
             delta = model(x.contiguous(memory_format=torch.channels_last)).float()
         mask = get("mask")
-        loss = sum(item_loss(base + delta[:, k:k + 3], _signed(get(target)), mask)
-                   for clip, base, k, target in (("relit", r, 0, "target"), ("albedo", a, 3, "albedo_t"))
-                   if clip in config.clips)
+        loss = sum(item_loss(base + delta[:, k:k + 3], targets[clip], mask)
+                   for clip, base, k in (("relit", r, 0), ("albedo", a, 3)) if clip in config.clips)
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
@@ -388,6 +402,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--base", choices=("raw", "filtered"), default="filtered")
     parser.add_argument("--clips", nargs="+", choices=("relit", "albedo"), default=["relit", "albedo"],
                         help="the frames it learns to correct (its loss, the choice of the best, the model's config)")
+    parser.add_argument("--flip-average", action="store_true",
+                        help="the refiner averages its correction with the mirror image's (validation and the model's config)")
+    parser.add_argument("--permute-colours", action="store_true",
+                        help="augment each training item with a random order of its RGB channels (all its frames alike)")
     parser.add_argument("--val-every-minutes", type=float, default=7.0)
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--seed", type=int, default=0)
@@ -400,7 +418,8 @@ def main(argv: list[str] | None = None) -> int:
     if not (args.model / DIT_FILE).is_file():
         parser.error(f"--model {args.model} holds no {DIT_FILE}; give a model folder")
     try:
-        RefinerConfig.from_dict({"widths": args.widths, "blocks": args.blocks, "base": args.base, "clips": args.clips})
+        RefinerConfig.from_dict({"widths": args.widths, "blocks": args.blocks, "base": args.base, "clips": args.clips,
+                                 "flip_average": args.flip_average})
     except ValueError as error:
         parser.error(str(error))
     threads = torch.get_num_threads()
