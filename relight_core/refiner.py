@@ -64,6 +64,12 @@ class RefinerConfig:
         return out
 
     @property
+    def shape(self) -> tuple:
+        """What its weights depend on (widths, blocks, base); `clips` and `flip_average` only change how
+        they are used, so a run may resume or start from weights with other ones."""
+        return self.widths, self.blocks, self.base
+
+    @property
     def in_channels(self) -> int:
         return 9 if self.base == "raw" else 15
 
@@ -138,7 +144,13 @@ class Refiner(nn.Module):
         in [-1, 1] (and, for base "filtered", those frames after the offset filter); any frame size
         (each level's result is brought back to its skip's size)."""
         x, relit, albedo = network_input(self.config.base, inputs, relit, albedo, filtered)
-        delta = self.correction(x).to(relit.dtype)
+        return self.corrected(self.correction(x).to(relit.dtype), relit, albedo)
+
+    def corrected(self, delta: torch.Tensor, relit: torch.Tensor, albedo: torch.Tensor
+                  ) -> tuple[torch.Tensor, torch.Tensor]:
+        """The base frames (relit, albedo) [B,3,H,W] in [-1, 1] with the corrections `delta` [B,6,H,W] added
+        to the clips it corrects (the others come back as they were). The one place this is done, for
+        training's validation and for use."""
         if "relit" in self.config.clips:
             relit = (relit + delta[:, :3]).clamp(-1, 1)
         if "albedo" in self.config.clips:

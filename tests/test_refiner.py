@@ -234,6 +234,9 @@ def test_refine_trains_on_unseen_scenes_resumes_and_writes_a_model_the_relighter
     assert json.loads((tmp_path / "run" / "best.json").read_text())["train_items"] == 4
     more = [json.loads(line) for line in (tmp_path / "run" / "log.jsonl").read_text().splitlines()]
     assert more[-1]["step"] > log[-1]["step"]
+    # Validated as the Relighter uses it: correcting the albedo alone, its relit frames are the filter's.
+    start = json.loads((tmp_path / "run" / "best.json").read_text())["start"]["filtered"]["relit"]
+    assert more[-1]["val"]["relit"] == pytest.approx(start, abs=1e-3)
     # A new run folder can start from that refiner (--init): at lr 0 its best is those very weights.
     init = ["--init", str(tmp_path / "run" / "refiner.safetensors")]
     fresh = [*args[:args.index("--out") + 1], str(tmp_path / "run2"), *args[args.index("--out") + 2:], *init]

@@ -186,15 +186,17 @@ def permute_colours(images: torch.Tensor, order: torch.Tensor) -> torch.Tensor:
 
 @torch.no_grad()
 def validate(refiner: Refiner, data: dict, autocast: bool) -> dict[str, float]:
-    """The protocol's mean PSNR (relit, albedo) of the refined frames on `data`."""
+    """The protocol's mean PSNR (relit, albedo) of the refined frames on `data`, as `Relighter` makes them
+    (a clip the refiner does not correct is scored as its base)."""
     relit, albedo = [], []
     for start in range(0, len(data["input"]), 32):
         index = slice(start, start + 32)
         x, r, a, _ = model_inputs(data, index, refiner.config.base)
         with torch.autocast("cpu", dtype=torch.bfloat16, enabled=autocast):
             delta = refiner.correction(x.contiguous(memory_format=torch.channels_last)).float()
-        relit.append(((r + delta[:, :3]).clamp(-1, 1) + 1) / 2)
-        albedo.append(((a + delta[:, 3:]).clamp(-1, 1) + 1) / 2)
+        r, a = refiner.corrected(delta, r, a)
+        relit.append((r + 1) / 2)
+        albedo.append((a + 1) / 2)
     return scores(data, torch.cat(relit).permute(0, 2, 3, 1).numpy(), torch.cat(albedo).permute(0, 2, 3, 1).numpy())
 
 
@@ -238,8 +240,7 @@ def train(args: argparse.Namespace, log=print) -> dict:
     checkpoint = out / CHECKPOINT_FILE
     if checkpoint.is_file():
         saved = torch.load(checkpoint, map_location="cpu", weights_only=True)
-        if {k: v for k, v in saved["config"].items() if k not in ("clips", "flip_average")} != {
-                k: v for k, v in config.to_dict().items() if k not in ("clips", "flip_average")}:
+        if RefinerConfig.from_dict(saved["config"]).shape != config.shape:
             raise ValueError(f"{checkpoint} is a refiner of another shape ({saved['config']}); "
                              "give a new --out or the same --widths/--blocks/--base")
         model.load_state_dict(saved["model"])
