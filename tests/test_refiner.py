@@ -245,6 +245,9 @@ def test_refine_trains_on_unseen_scenes_resumes_and_writes_a_model_the_relighter
     assert "starting from the refiner in" in capsys.readouterr().out
     trained, again = (load_file(tmp_path / r / "refiner.safetensors") for r in ("run", "run2"))
     assert all(torch.equal(trained[k], again[k]) for k in trained)
+    # The starting refiner is scored first, so what the run has to beat is on record.
+    best2 = json.loads((tmp_path / "run2" / "best.json").read_text())
+    assert best2["start"]["init"]["albedo"] == pytest.approx(best2["val"]["albedo"], abs=1e-3)
     with pytest.raises(SystemExit):
         refine.main([*fresh[:fresh.index("--widths")], "--widths", "4", "8", "8", "8", "--out", str(tmp_path / "run3"),
                      "--minutes", "0.02", *init])

@@ -254,6 +254,7 @@ def train(args: argparse.Namespace, log=print) -> dict:
         if args.init is not None:
             how = initial_weights(model, args.init)
             ema.load_state_dict(model.state_dict())
+            state["start"]["init"] = validate(ema, val_data, autocast)   # what the run must beat
             log(f"starting from the refiner in {args.init}, {how} (a new optimiser)")
         log(f"start (the DiT's frames on the validation pack): {state['start']}")
     records = open(out / "log.jsonl", "a")
