@@ -1,3 +1,5 @@
+"""The shipped DiT's outputs for every seed-5 item but the validation scenes', cached as training.refine caches
+them: PYTHONPATH=. python runs/default-128-s18r/outputs.py OUT.npz"""
 import sys, torch
 from pathlib import Path
 from relight_core.training import refine

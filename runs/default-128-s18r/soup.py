@@ -6,14 +6,14 @@ import torch
 from safetensors.torch import load_file, save_file
 
 from relight_core.training import refine as R
-from valdata import refiner, validation
+from valdata import bf16, refiner, validation
 
 torch.set_num_threads(2)
 data = validation("filtered")
 
 
 def score(model) -> float:
-    return R.validate(model, data, autocast=True)["albedo"]
+    return R.validate(model, data, autocast=bf16())["albedo"]
 
 
 states = [{k: v.float() for k, v in load_file(p).items()} for p in sys.argv[2:]]

@@ -5,7 +5,7 @@ import sys
 import torch
 
 from relight_core.training import refine as R
-from valdata import refiner, validation
+from valdata import bf16, refiner, validation
 
 torch.set_num_threads(2)
 data = validation("filtered")
@@ -23,7 +23,7 @@ ops = {  # (forward, inverse) on [..., H, W]
 sets = {"filtered (no refiner)": [], "plain": ["id"], "lr (shipped)": ["id", "lr"], "ud alone": ["ud"],
         "lr+ud (4)": ["id", "lr", "ud", "rot180"], "all 8": list(ops)}
 res = {k: [] for k in sets}
-with torch.no_grad(), torch.autocast("cpu", dtype=torch.bfloat16):
+with torch.no_grad(), torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16()):
     for s in range(0, len(data["input"]), 32):
         x, r, a, _ = R.model_inputs(data, slice(s, s + 32), "filtered")
         outs = {k: inv(m(f(x)).float()[:, 3:]) for k, (f, inv) in ops.items()}
