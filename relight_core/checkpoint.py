@@ -25,7 +25,7 @@ from relight_core.arguments import MAX_ENSEMBLE
 from relight_core.dit import DIT_PRESETS, DiTConfig, JointDiT
 from relight_core.errors import InputError
 from relight_core.precision import check_precision
-from relight_core.refiner import REFINER_FILE, Refiner, RefinerConfig
+from relight_core.refiner import REFINER_SLOTS, Refiner, RefinerConfig
 from relight_core.tokenizer import build_tokenizer
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
@@ -58,6 +58,8 @@ class ModelSpec:
                                          # mirror image under the mirrored light (Relighter, MAX_ENSEMBLE)
     refiner: dict | None = None          # the detail refiner's shape (refiner.RefinerConfig) when the folder
                                          # holds refiner.safetensors; None = no refiner
+    relit_refiner: dict | None = None    # a second one (relit_refiner.safetensors), e.g. one that sees the
+                                         # light for the relit frames; each corrects its clips
     notes: dict = field(default_factory=dict)
 
     def to_json(self) -> dict:
@@ -91,14 +93,15 @@ class ModelSpec:
             if not isinstance(count, int) or isinstance(count, bool) or not 1 <= count <= MAX_ENSEMBLE:
                 raise InputError(f"The model's config.json has ensemble {count!r}; it takes a whole number of "
                                  f"samples from 1 to {MAX_ENSEMBLE}, or leave it out.")
-        if kwargs.get("refiner") is not None:
-            try:
-                kwargs["refiner"] = RefinerConfig.from_dict(kwargs["refiner"]).to_dict()
-            except (ValueError, TypeError, AttributeError):
-                raise InputError(f"The model's config.json has refiner {kwargs['refiner']!r}; it takes "
-                                 '"widths" (1 to 6 whole numbers from 1 to 1024), "blocks" (0 to 8), "base" '
-                                 '("raw" or "filtered"), "clips" (["relit", "albedo"] or one of them) and '
-                                 '"flip_average" (true or false), or leave it out.') from None
+        for slot in REFINER_SLOTS:
+            if kwargs.get(slot) is not None:
+                try:
+                    kwargs[slot] = RefinerConfig.from_dict(kwargs[slot]).to_dict()
+                except (ValueError, TypeError, AttributeError):
+                    raise InputError(f"The model's config.json has {slot} {kwargs[slot]!r}; it takes "
+                                     '"widths" (1 to 6 whole numbers from 1 to 1024), "blocks" (0 to 8), "base" '
+                                     '("raw" or "filtered"), "clips" (["relit", "albedo"] or one of them), '
+                                     '"flip_average" and "lighting" (true or false), or leave it out.') from None
         return cls(**kwargs)
 
 
@@ -196,13 +199,15 @@ def load_model(model: str | Path = "default", device: str | torch.device = "cpu"
     return spec, dit, tokenizer
 
 
-def load_refiner(spec: ModelSpec, directory: Path | None, device: str | torch.device = "cpu") -> Refiner | None:
-    """The detail refiner (refiner.py) of a model folder (`resolve_model`'s spec and directory) in fp32,
-    eval mode, or None when its config names none."""
-    if spec.refiner is None or directory is None:
+def load_refiner(spec: ModelSpec, directory: Path | None, device: str | torch.device = "cpu",
+                 slot: str = "refiner") -> Refiner | None:
+    """A detail refiner (refiner.py) of a model folder (`resolve_model`'s spec and directory) in fp32,
+    eval mode — `slot` "refiner" or "relit_refiner" (`REFINER_SLOTS`) — or None when its config names none."""
+    config = getattr(spec, slot)
+    if config is None or directory is None:
         return None
-    refiner = Refiner(RefinerConfig.from_dict(spec.refiner))
-    _load_state(refiner, directory / REFINER_FILE, device, torch.float32)
+    refiner = Refiner(RefinerConfig.from_dict(config))
+    _load_state(refiner, directory / REFINER_SLOTS[slot], device, torch.float32)
     return refiner.to(device).eval().requires_grad_(False)
 
 

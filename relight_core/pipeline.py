@@ -52,7 +52,8 @@ class Relighter(CostModel):
     memory estimates: `costs.CostModel`)."""
 
     def __init__(self, spec: ModelSpec, dit, tokenizer, device: str | torch.device = "cpu",
-                 precision: str | None = None, refiner: torch.nn.Module | None = None):
+                 precision: str | None = None, refiner: torch.nn.Module | None = None,
+                 relit_refiner: torch.nn.Module | None = None):
         self.spec = spec
         self.device = torch.device(device)
         # The hardware decides (precision.py), never the dtype the weights were stored in.
@@ -63,6 +64,7 @@ class Relighter(CostModel):
         self.dit = dit.to(self.dtype)
         self.tokenizer = _tokenizer_in(tokenizer, self.dtype)
         self.refiner = refiner  # refiner.Refiner (fp32 weights; runs under the autocast) or None
+        self.relit_refiner = relit_refiner  # a second one (config "relit_refiner"), e.g. seeing the light
         self.denoiser = EDMPrecond(self._network)
         self._latent_cache: OrderedDict[str, torch.Tensor] = OrderedDict()
         self._preview_matrix: torch.Tensor | None = None
@@ -80,7 +82,8 @@ class Relighter(CostModel):
         spec, directory = resolve_model(model)
         dtype = resolve_precision(precision or spec.precision, device)  # load straight into it
         spec, dit, tokenizer = load_model(model, device, dtype)
-        return cls(spec, dit, tokenizer, device, precision, load_refiner(spec, directory, device))
+        return cls(spec, dit, tokenizer, device, precision, load_refiner(spec, directory, device),
+                   load_refiner(spec, directory, device, "relit_refiner"))
 
     # -- public API -------------------------------------------------------------------------
 
@@ -172,7 +175,8 @@ class Relighter(CostModel):
             except Stopped:
                 return
             relit_chunk, albedo_chunk = self._decode(x0, t, length)  # the members' mean
-            relit_chunk, albedo_chunk = self._refined(request.mode, chunk_frames, relit_chunk, albedo_chunk)
+            light = self._refiner_light(request, chunk_probe, rot[:length], padded.shape[1], padded.shape[2])
+            relit_chunk, albedo_chunk = self._refined(request.mode, chunk_frames, relit_chunk, albedo_chunk, light)
             weights = crossfade_weights(overlap[0].shape[0]) if overlap is not None else None
             stitch(relit_out, relit_chunk, start, weights)
             stitch(albedo_out, albedo_chunk, start, weights)
@@ -376,34 +380,63 @@ class Relighter(CostModel):
             return relit[0], albedo[0]
         return relit.mean(axis=0), albedo.mean(axis=0)
 
-    def _refined(self, mode: str, frames: np.ndarray, relit: np.ndarray, albedo: np.ndarray
-                 ) -> tuple[np.ndarray, np.ndarray]:
-        """The relit and albedo frames [T,H,W,3] in [0, 1] after the model's refiner (refiner.py: it
-        sharpens what the DiT made, looking at the input) or, for a model without one, its offset
-        filter (`_smoothed`). Not in render mode, whose outputs do not start from an input photo."""
-        if self.refiner is None or mode == "render":
+    def _refiner_light(self, request: RelightRequest, probe: torch.Tensor | None, rotations: list[float],
+                       height: int, width: int) -> torch.Tensor | None:
+        """The target's camera-frame panoramas [T,s,s,3] on the model's lighting grid for a refiner that
+        sees the light (None when none does, or there is no probe: a random light, albedo or render
+        mode) — the probe the DiT's lighting is made from (`_lighting_latents`), one per frame."""
+        if (probe is None or request.mode in ("render", "albedo")
+                or not any(r is not None and r.config.lighting for r in (self.refiner, self.relit_refiner))):
+            return None
+        if probe.dim() == 4:  # RelightRequest.camera_probe: the chunk's panoramas, already in the camera frame
+            panoramas = probe[:len(rotations)]
+        else:
+            camera = lighting.camera_rotation(request.camera_pitch, request.camera_roll)
+            panoramas = torch.stack([lighting.probe_in_camera(probe, height, width, rotation=r, cam_to_world=camera)
+                                     for r in rotations])
+        size = self.spec.lighting_size or 32
+        return lighting.downsample_panorama(panoramas, min(size, panoramas.shape[1], panoramas.shape[2]))
+
+    def _refined(self, mode: str, frames: np.ndarray, relit: np.ndarray, albedo: np.ndarray,
+                 light: torch.Tensor | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """The relit and albedo frames [T,H,W,3] in [0, 1] after the model's refiners (refiner.py: they
+        sharpen what the DiT made, looking at the input; one may see the target light `light`, the
+        chunk's camera-frame panoramas [T,s,s,3] from `_refiner_light`) or, for a model without one, its
+        offset filter (`_smoothed`). Each refiner corrects its clips from the same frames (the relit
+        refiner's win where both correct one); a clip none corrects comes back as the first one's base.
+        A refiner that sees the light is left out when there is none (a random light). Not in render
+        mode, whose outputs do not start from an input photo."""
+        refiners = [r for r in (self.refiner, self.relit_refiner)
+                    if r is not None and (light is not None or not r.config.lighting)]
+        if not refiners or mode == "render":
             return self._smoothed(mode, frames, relit, albedo)
 
         def signed(x: np.ndarray) -> torch.Tensor:
             return torch.from_numpy(np.ascontiguousarray(x)).float().permute(0, 3, 1, 2).to(self.device) * 2 - 1
 
-        filtered = self._smoothed(mode, frames, relit, albedo) if self.refiner.config.base == "filtered" else None
-        refined_relit, refined_albedo = [], []
-        with torch.no_grad(), self._autocast():
-            for start in range(0, len(frames), 8):  # a few frames at a time: memory stays flat for long clips
-                part = slice(start, start + 8)
-                given = None if filtered is None else (signed(filtered[0][part]), signed(filtered[1][part]))
-                r, a = self.refiner.refine(signed(frames[part]), signed(relit[part]), signed(albedo[part]), given)
-                refined_relit.append(r.float())
-                refined_albedo.append(a.float())
-
         def unsigned(parts: list[torch.Tensor]) -> np.ndarray:
             return ((torch.cat(parts) + 1) / 2).clamp(0, 1).permute(0, 2, 3, 1).cpu().numpy().astype(relit.dtype)
 
-        base = (relit, albedo) if filtered is None else filtered
-        clips = self.refiner.config.clips    # a clip it does not correct comes back exactly as it was
-        return (unsigned(refined_relit) if "relit" in clips else base[0],
-                unsigned(refined_albedo) if "albedo" in clips else base[1])
+        filtered = (self._smoothed(mode, frames, relit, albedo)
+                    if any(r.config.base == "filtered" for r in refiners) else None)
+        out = list((relit, albedo) if refiners[0].config.base == "raw" else filtered)
+        for refiner in refiners:
+            refined_relit, refined_albedo = [], []
+            with torch.no_grad(), self._autocast():
+                for start in range(0, len(frames), 8):  # a few frames at a time: memory stays flat for long clips
+                    part = slice(start, start + 8)
+                    given = None
+                    if refiner.config.base == "filtered":
+                        given = (signed(filtered[0][part]), signed(filtered[1][part]))
+                    panoramas = light[part].to(self.device) if refiner.config.lighting else None
+                    r, a = refiner.refine(signed(frames[part]), signed(relit[part]), signed(albedo[part]), given,
+                                          panoramas)
+                    refined_relit.append(r.float())
+                    refined_albedo.append(a.float())
+            for k, (clip, parts) in enumerate((("relit", refined_relit), ("albedo", refined_albedo))):
+                if clip in refiner.config.clips:   # a clip it does not correct comes back exactly as it was
+                    out[k] = unsigned(parts)
+        return out[0], out[1]
 
     def _smoothed(self, mode: str, frames: np.ndarray, relit: np.ndarray, albedo: np.ndarray
                   ) -> tuple[np.ndarray, np.ndarray]:

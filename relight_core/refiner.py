@@ -10,13 +10,19 @@ to the DiT's relit and albedo frames (all at the model's size) and adds a correc
 
 where the base is the DiT's frames ("raw") or those after the model's offset filter ("filtered":
 `ModelSpec.offset_filter`, the hand-tuned form of the same idea), and only the `clips` it is
-configured for are corrected (the shipped one: the albedo alone; docs/QUALITY.md says why). It never
-sees the light: whatever follows the probe comes from the DiT. Its last layer starts at zero, so an
-untrained refiner returns its base unchanged. With `flip_average` its correction is the mean of the
-one for the frames and the one for their mirror image flipped back (two passes, one batch).
+configured for are corrected. A refiner with `lighting` also sees the target light: the camera-frame
+probe area-averaged to 8×8 (`light_features`), through an MLP that scales and shifts every channel of
+its middle and decoder levels (FiLM; zero at the start, so it begins as the refiner without light);
+one without it follows the probe only through the DiT. Its last layer starts at zero, so an untrained
+refiner returns its base unchanged. With `flip_average` its correction is the mean of the one for the
+frames and the one for their mirror image flipped back (two passes, one batch; the mirrored pass sees
+the mirrored light, u → 1 − u).
 
-Weights: `refiner.safetensors` next to the DiT's, its shape in config.json's "refiner" entry
-(`RefinerConfig`). Trained by `python -m relight_core.training.refine` on the frozen DiT's outputs.
+A model folder holds up to two: `refiner.safetensors` (config.json's "refiner" entry) and
+`relit_refiner.safetensors` ("relit_refiner"), each correcting its clips from the same frames. The
+shipped default has the first, for its albedo alone; a second for the relit frames that sees the light
+was measured and not shipped (docs/QUALITY.md says why). Trained by `python -m relight_core.training.refine` on the
+frozen DiT's outputs.
 """
 
 from __future__ import annotations
@@ -28,6 +34,10 @@ from torch import nn
 from torch.nn import functional as F
 
 REFINER_FILE = "refiner.safetensors"
+RELIT_REFINER_FILE = "relit_refiner.safetensors"
+REFINER_SLOTS = {"refiner": REFINER_FILE, "relit_refiner": RELIT_REFINER_FILE}   # config.json key → weights
+LIGHT_GRID = 8                                 # the probe as the refiner sees it: 8×8 area averages
+LIGHT_FEATURES = 3 * LIGHT_GRID * LIGHT_GRID
 
 
 @dataclass(frozen=True)
@@ -38,12 +48,14 @@ class RefinerConfig:
                                                   # those after the model's offset filter ("filtered")
     clips: tuple[str, ...] = ("relit", "albedo")  # the frames it corrects; the others stay the base's
     flip_average: bool = False                    # average the correction with the mirror image's
+    lighting: bool = False                        # sees the target light (FiLM from `light_features`)
 
     @classmethod
     def from_dict(cls, data: dict) -> "RefinerConfig":
         widths, blocks = data.get("widths", list(cls.widths)), data.get("blocks", cls.blocks)
         base, clips = data.get("base", cls.base), data.get("clips", list(cls.clips))
         flip_average = data.get("flip_average", cls.flip_average)
+        lighting = data.get("lighting", cls.lighting)
 
         def whole(v, low, high):
             return isinstance(v, int) and not isinstance(v, bool) and low <= v <= high
@@ -51,23 +63,27 @@ class RefinerConfig:
         if (not isinstance(widths, (list, tuple)) or not 1 <= len(widths) <= 6
                 or not all(whole(w, 1, 1024) for w in widths) or not whole(blocks, 0, 8)
                 or base not in ("raw", "filtered") or not isinstance(clips, (list, tuple))
-                or not clips or not set(clips) <= {"relit", "albedo"} or not isinstance(flip_average, bool)):
+                or not clips or not set(clips) <= {"relit", "albedo"} or not isinstance(flip_average, bool)
+                or not isinstance(lighting, bool)):
             raise ValueError(f"a refiner takes 1–6 widths from 1 to 1024, 0–8 blocks, base raw or filtered, "
-                             f"clips relit and/or albedo and flip_average true or false; got {data!r}")
+                             f"clips relit and/or albedo, flip_average and lighting true or false; got {data!r}")
         return cls(widths=tuple(widths), blocks=blocks, base=base,
-                   clips=tuple(c for c in ("relit", "albedo") if c in clips), flip_average=flip_average)
+                   clips=tuple(c for c in ("relit", "albedo") if c in clips), flip_average=flip_average,
+                   lighting=lighting)
 
     def to_dict(self) -> dict:
         out = {"widths": list(self.widths), "blocks": self.blocks, "base": self.base, "clips": list(self.clips)}
         if self.flip_average:
             out["flip_average"] = True
+        if self.lighting:
+            out["lighting"] = True
         return out
 
     @property
     def shape(self) -> tuple:
-        """What its weights depend on (widths, blocks, base); `clips` and `flip_average` only change how
-        they are used, so a run may resume or start from weights with other ones."""
-        return self.widths, self.blocks, self.base
+        """What its weights depend on (widths, blocks, base, lighting); `clips` and `flip_average` only
+        change how they are used, so a run may resume or start from weights with other ones."""
+        return self.widths, self.blocks, self.base, self.lighting
 
     @property
     def in_channels(self) -> int:
@@ -87,6 +103,18 @@ def network_input(base: str, inputs: torch.Tensor, relit: torch.Tensor, albedo: 
         parts += list(filtered)
         relit, albedo = filtered
     return torch.cat(parts, dim=1), relit, albedo
+
+
+def light_features(panoramas: torch.Tensor) -> torch.Tensor:
+    """[B,3*8*8] lighting features of camera-frame panoramas [B,h,w,3] (linear radiance, any size; the
+    packs' 32² lighting grid or a frame-sized panorama alike): area averages on an 8×8 grid, divided by
+    their mean (the protocol fits each channel's scale, so only the light's shape and colour count),
+    then log(· + 0.05)."""
+    if panoramas.dim() != 4 or panoramas.shape[-1] != 3:
+        raise ValueError(f"light_features takes panoramas [B,h,w,3]; got {tuple(panoramas.shape)}")
+    grid = F.adaptive_avg_pool2d(panoramas.permute(0, 3, 1, 2).float(), LIGHT_GRID)
+    grid = grid / grid.mean((1, 2, 3), keepdim=True).clamp_min(1e-6)
+    return torch.log(grid.clamp_min(0) + 0.05).flatten(1)
 
 
 class _Block(nn.Module):
@@ -116,35 +144,66 @@ class Refiner(nn.Module):
         self.head = nn.Conv2d(w[0], 6, 3, padding=1)
         nn.init.zeros_(self.head.weight)
         nn.init.zeros_(self.head.bias)
+        # FiLM: a scale and shift per channel of the middle and of each decoder level, deepest first
+        self.film_sizes = [w[-1], *reversed(w[:-1])] if config.lighting else []
+        if config.lighting:
+            self.film = nn.Sequential(nn.Linear(LIGHT_FEATURES, 256), nn.SiLU(), nn.Linear(256, 2 * sum(self.film_sizes)))
+            nn.init.zeros_(self.film[-1].weight)
+            nn.init.zeros_(self.film[-1].bias)
 
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
+    def forward(self, x: torch.Tensor, light: torch.Tensor | None = None) -> torch.Tensor:
+        """Corrections [B,6,H,W] for network input `x`; `light` [B,192] (`light_features`) for a refiner
+        with lighting (required there, not taken otherwise)."""
+        if self.config.lighting != (light is not None):
+            raise ValueError("a refiner with lighting takes the light's features, one without takes none")
+        films = []
+        if light is not None:
+            params, at = self.film(light.to(x.device)).float(), 0
+            for size in self.film_sizes:
+                films.append((params[:, at:at + size, None, None], params[:, at + size:at + 2 * size, None, None]))
+                at += 2 * size
+
+        def modulated(h: torch.Tensor, level: int) -> torch.Tensor:
+            if not films:
+                return h
+            scale, shift = films[level]
+            return h * (1 + scale.to(h.dtype)) + shift.to(h.dtype)
+
         h = self.stem(x)
         skips = []
         for enc, down in zip(self.enc, self.down):
             h = enc(h)
             skips.append(h)
             h = down(F.silu(h))
-        h = self.mid(h)
-        for i in reversed(range(len(skips))):
+        h = modulated(self.mid(h), 0)
+        for level, i in enumerate(reversed(range(len(skips))), start=1):
             h = F.interpolate(h, size=skips[i].shape[-2:], mode="bilinear", align_corners=False)
-            h = self.dec[i](self.up[i](torch.cat([h, skips[i]], dim=1)))
+            h = modulated(self.dec[i](self.up[i](torch.cat([h, skips[i]], dim=1))), level)
         return self.head(F.silu(h))
 
-    def correction(self, x: torch.Tensor) -> torch.Tensor:
-        """The corrections [B,6,H,W] for network input `x` [B,9|15,H,W] (`network_input`): the network's
-        own, or with `flip_average` the mean of it and the mirror image's flipped back."""
+    def correction(self, x: torch.Tensor, panoramas: torch.Tensor | None = None) -> torch.Tensor:
+        """The corrections [B,6,H,W] for network input `x` [B,9|15,H,W] (`network_input`) and, for a
+        refiner with lighting, the target's camera-frame panoramas [B,h,w,3]: the network's own, or with
+        `flip_average` the mean of it and the mirror image's (under the mirrored light) flipped back."""
+        if self.config.lighting and panoramas is None:
+            raise ValueError("this refiner sees the light; pass the target's camera-frame panoramas")
+        light = light_features(panoramas) if self.config.lighting else None
         if not self.config.flip_average:
-            return self.forward(x)
-        both = self.forward(torch.cat([x, x.flip(-1)]))
+            return self.forward(x, light)
+        if light is not None:
+            light = torch.cat([light, light_features(panoramas.flip(2))])
+        both = self.forward(torch.cat([x, x.flip(-1)]), light)
         return (both[:len(x)] + both[len(x):].flip(-1)) / 2
 
     def refine(self, inputs: torch.Tensor, relit: torch.Tensor, albedo: torch.Tensor,
-               filtered: tuple[torch.Tensor, torch.Tensor] | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+               filtered: tuple[torch.Tensor, torch.Tensor] | None = None,
+               panoramas: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """Refined (relit, albedo) [B,3,H,W] in [-1, 1] from the input and the DiT's frames [B,3,H,W]
-        in [-1, 1] (and, for base "filtered", those frames after the offset filter); any frame size
-        (each level's result is brought back to its skip's size)."""
+        in [-1, 1] (and, for base "filtered", those frames after the offset filter; for a refiner with
+        lighting, the target's camera-frame panoramas [B,h,w,3]); any frame size (each level's result
+        is brought back to its skip's size)."""
         x, relit, albedo = network_input(self.config.base, inputs, relit, albedo, filtered)
-        return self.corrected(self.correction(x).to(relit.dtype), relit, albedo)
+        return self.corrected(self.correction(x, panoramas).to(relit.dtype), relit, albedo)
 
     def corrected(self, delta: torch.Tensor, relit: torch.Tensor, albedo: torch.Tensor
                   ) -> tuple[torch.Tensor, torch.Tensor]:

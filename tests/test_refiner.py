@@ -13,7 +13,7 @@ from relight_core.checkpoint import ModelSpec, load_model, load_refiner, resolve
 from relight_core.dit import DiTConfig, JointDiT
 from relight_core.errors import InputError
 from relight_core.pipeline import Relighter, RelightRequest
-from relight_core.refiner import REFINER_FILE, Refiner, RefinerConfig
+from relight_core.refiner import LIGHT_FEATURES, REFINER_FILE, RELIT_REFINER_FILE, Refiner, RefinerConfig, light_features
 from relight_core.tokenizer import build_tokenizer
 from relight_core.training import refine
 from relight_core.training.fast import FastConfig, train
@@ -261,6 +261,34 @@ def test_refine_trains_on_unseen_scenes_resumes_and_writes_a_model_the_relighter
     frames = np.random.default_rng(3).random((1, 32, 32, 3)).astype(np.float32)
     result = relighter.relight(RelightRequest(frames=frames, probe=np.ones((16, 32, 3), np.float32)))
     assert result.relit.shape == frames.shape and np.isfinite(result.albedo).all()
+    # A relit refiner that sees the light, beside that albedo one: from the albedo refiner's weights with its
+    # relit correction set to zero (so it starts at the filtered frames) and the light's FiLM new.
+    lit = [*fresh[:fresh.index("--out")], "--out", str(tmp_path / "run4"), "--widths", "4", "8", "--batch", "2",
+           "--minutes", "0.03", "--val-every-minutes", "0.01", "--warmup", "2", "--scenes", "2",
+           "--model", str(tmp_path / "refined"), "--model-dir", str(tmp_path / "refined3"), "--flip-average",
+           "--permute-colours", "--clips", "relit", "--lighting", "--zero-head", "--slot", "relit_refiner",
+           "--same-scenes", "1", *init]
+    assert refine.main(lit) == 0
+    assert "with the light's FiLM new; the corrected clips' head set to zero" in capsys.readouterr().out
+    best4 = json.loads((tmp_path / "run4" / "best.json").read_text())
+    assert best4["refiner"]["lighting"] and best4["refiner"]["clips"] == ["relit"]
+    # --same-scenes: one training scene and every validation scene also relit to its own light, scored apart.
+    assert best4["train_items"] == 5 and best4["val_items"] == 6 and "same" in best4["val"]
+    kinds = np.load(tmp_path / "run4" / "outputs-train.npz")
+    assert list(kinds["same"]) == [0, 0, 0, 0, 1] and list(kinds["names"][-1:]) == ["scene_000002"]
+    assert list(kinds["targets"][-1:]) == [0]                                  # light scene % 2
+    pack = refine.load_packs([tmp_path / "p.npz"])
+    data = refine.item_tensors(pack, [(2, 0, 1), (2, 0, 0)], {k: kinds[k][[4, 0]] for k in ("relit", "albedo")},
+                               load_model(tmp_path / "refined")[0], "raw")
+    assert torch.equal(data["input"][0], data["target"][0]) and torch.equal(data["input"][1], pack["rgb"][2, 1])
+    assert best4["start"]["init"]["relit"] == pytest.approx(best4["start"]["filtered"]["relit"], abs=1e-3)
+    config3 = json.loads((tmp_path / "refined3" / "config.json").read_text())
+    assert config3["refiner"] == json.loads((tmp_path / "refined" / "config.json").read_text())["refiner"]
+    assert config3["relit_refiner"]["lighting"] and "relit_refiner" in config3["notes"]
+    both = Relighter.load(str(tmp_path / "refined3"))
+    assert both.refiner.config.clips == ("albedo",) and both.relit_refiner.config.lighting
+    twice = both.relight(RelightRequest(frames=frames, probe=np.ones((16, 32, 3), np.float32)))
+    np.testing.assert_allclose(twice.albedo, result.albedo, atol=2e-3)     # the albedo refiner is the one copied
     # A second shape on the same run folder is refused in one sentence, as is a model that is not a pixel model.
     with pytest.raises(SystemExit):
         refine.main([*args[:args.index("--widths")], "--widths", "4", "8", "8", "--minutes", "0.1"])
@@ -270,3 +298,100 @@ def test_refine_trains_on_unseen_scenes_resumes_and_writes_a_model_the_relighter
     with pytest.raises(SystemExit):
         refine.main([*args[:1], str(tmp_path), *args[2:]])
     assert f"--model {tmp_path} holds no dit.safetensors" in capsys.readouterr().err
+
+
+def test_light_features_keep_the_lights_shape_and_colour_not_its_scale():
+    pano = torch.rand(2, 32, 32, 3) + 0.1
+    features = light_features(pano)
+    assert features.shape == (2, LIGHT_FEATURES)
+    assert torch.allclose(light_features(pano * 7.5), features, atol=1e-5)       # the protocol fits the scale
+    sun = pano.clone()
+    sun[:, 4:8, 20:24] += 50.0                                                    # a sun in one place ...
+    moved = pano.clone()
+    moved[:, 4:8, 4:8] += 50.0                                                    # ... or another
+    assert (light_features(sun) - light_features(moved)).abs().max() > 1.0
+    # A frame-sized panorama and its area average to the lighting grid give the same features.
+    assert torch.allclose(light_features(pano.repeat_interleave(4, 1).repeat_interleave(4, 2)), features, atol=1e-5)
+    with pytest.raises(ValueError, match="panoramas"):
+        light_features(torch.rand(32, 32, 3))
+
+
+def test_a_refiner_that_sees_the_light_starts_as_one_that_does_not_and_mirrors_with_its_light():
+    torch.manual_seed(5)
+    config = RefinerConfig(widths=(4, 8), blocks=1, base="filtered", clips=("relit",), flip_average=True)
+    blind = Refiner(config)
+    for parameter in blind.parameters():
+        torch.nn.init.normal_(parameter, std=0.1)
+    lit_config = RefinerConfig.from_dict({**config.to_dict(), "lighting": True})
+    assert lit_config.to_dict()["lighting"] is True and lit_config.shape != config.shape
+    lit = Refiner(lit_config)
+    missing = lit.load_state_dict(blind.state_dict(), strict=False).missing_keys
+    assert missing and all(k.startswith("film.") for k in missing)
+    x = torch.rand(2, 15, 16, 20) * 2 - 1
+    light = torch.rand(2, 32, 32, 3)
+    light[0, 8:12, 2:6] += 40.0                                                  # a sun on the left ...
+    light[1, 8:12, 26:30] += 40.0                                                # ... and on the right
+    with torch.no_grad():
+        # Its FiLM starts at zero: the same corrections as the refiner without the light, whatever the light.
+        assert torch.allclose(lit.correction(x, light), blind.correction(x), atol=1e-6)
+        torch.nn.init.normal_(lit.film[-1].weight, std=0.1)
+        one, other = lit.correction(x, light), lit.correction(x, light.flip(0))
+        assert (one - other).abs().max() > 1e-3                                   # now the light counts
+        # Mirror the frames and the light, and the correction mirrors with them.
+        assert torch.allclose(lit.correction(x.flip(-1), light.flip(2)), one.flip(-1), atol=1e-5)
+        relit, albedo = lit.refine(*[x[:, 3 * k:3 * k + 3] for k in range(3)],
+                                   filtered=(x[:, 9:12], x[:, 12:15]), panoramas=light)
+    assert torch.equal(albedo, x[:, 12:15])                                      # relit-only: albedo is the base's
+    with pytest.raises(ValueError, match="sees the light"):
+        lit.correction(x)
+    with pytest.raises(ValueError, match="takes the light's features"):
+        blind(x, light_features(light))
+    with pytest.raises(ValueError):
+        RefinerConfig.from_dict({"lighting": 1})
+
+
+def test_a_relit_refiner_beside_the_albedo_one_corrects_the_relit_frames_with_the_target_light(tmp_path):
+    spec, dit, tok = residual_model()
+    frames = np.random.default_rng(1).random((2, 32, 32, 3)).astype(np.float32)
+    probe = np.ones((16, 32, 3), np.float32)
+    probe[2:5, 6:10] = 60.0                                                      # a sun
+    request = RelightRequest(frames=frames, probe=probe)
+    filtered = Relighter(spec, dit, tok).relight(request)
+    albedo_refiner = Refiner(replace(SMALL, base="filtered", clips=("albedo",)))
+    relit_refiner = Refiner(replace(SMALL, base="filtered", clips=("relit",), lighting=True))
+    torch.manual_seed(2)
+    with torch.no_grad():
+        albedo_refiner.head.bias.copy_(torch.tensor([0.3, 0.3, 0.3, -0.4, -0.4, -0.4]))  # its relit head is unused
+        torch.nn.init.normal_(relit_refiner.head.weight, std=0.05)
+        torch.nn.init.normal_(relit_refiner.film[-1].weight, std=0.5)
+    both = Relighter(spec, dit, tok, refiner=albedo_refiner, relit_refiner=relit_refiner)
+    result = both.relight(request)
+    np.testing.assert_allclose(result.albedo, np.clip(filtered.albedo - 0.2, 0, 1), atol=2e-3)
+    assert np.abs(result.relit - filtered.relit).max() > 1e-3                     # the relit refiner's
+    # It sees the target light: the probe turned, its correction differs (the DiT's part is taken out).
+    turned = replace(request, rotation=request.rotation + 90.0)
+    base_turned = Relighter(spec, dit, tok).relight(turned).relit
+    assert np.abs((both.relight(turned).relit - base_turned) - (result.relit - filtered.relit)).max() > 1e-3
+    # Without a probe (a random light) it has no light to see and stays out; the albedo one still runs.
+    random = replace(request, probe=None, mode="random")
+    unlit = both.relight(random)
+    plain_random = Relighter(spec, dit, tok).relight(random)
+    np.testing.assert_array_equal(unlit.relit, plain_random.relit)
+    np.testing.assert_allclose(unlit.albedo, np.clip(plain_random.albedo - 0.2, 0, 1), atol=2e-3)
+    # A model folder holds both (config.json "refiner" and "relit_refiner"); Relighter.load runs them.
+    folder = tmp_path / "model"
+    folder.mkdir()
+    save_file({k: v.contiguous() for k, v in dit.state_dict().items()}, folder / "dit.safetensors")
+    data = replace(spec, refiner=albedo_refiner.config.to_dict(), relit_refiner=relit_refiner.config.to_dict()).to_json()
+    (folder / "config.json").write_text(json.dumps(data))
+    save_file(albedo_refiner.state_dict(), folder / REFINER_FILE)
+    with pytest.raises(InputError, match=f"missing {RELIT_REFINER_FILE}"):
+        Relighter.load(str(folder))
+    save_file(relit_refiner.state_dict(), folder / RELIT_REFINER_FILE)
+    loaded = Relighter.load(str(folder))
+    assert loaded.relit_refiner.config.lighting and loaded.refiner.config.clips == ("albedo",)
+    again = loaded.relight(request)
+    np.testing.assert_allclose(again.relit, result.relit, atol=2e-3)
+    np.testing.assert_allclose(again.albedo, result.albedo, atol=2e-3)
+    with pytest.raises(InputError, match='has relit_refiner .*; it takes "widths"'):
+        ModelSpec.from_json({**data, "relit_refiner": {"lighting": "yes"}})

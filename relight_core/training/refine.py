@@ -8,7 +8,10 @@
    no `--seen` pack holds (scenes the DiT never trained on, so that its errors are those it makes on
    new photos), and for the validation pack. They are the slow part (~0.25 s an item on one CPU
    thread) and are kept in `--out/outputs-*.npz`, so a rerun does not repeat them, and a run given
-   more `--scenes` computes only the new ones.
+   more `--scenes` computes only the new ones. `--same-scenes N` adds, for the first N of those scenes
+   and for every validation scene, one item relit to the light it was taken under (the input is the
+   target): a refiner that sees the light learns to leave a photo alone under its own light, which
+   the probe-following margin measures (evaluation.harness).
 2. **Training.** The refiner learns a correction of those frames towards the rendered truth: per
    item the log of the squared error after the evaluation protocol's per-channel scale fit, plus half
    the log of the plain squared error, on the foreground mask, relit and albedo alike (or the `--clips`
@@ -19,10 +22,15 @@
    at every validation; the same command resumes from it exactly and stops when `--minutes` are used
    (a different `--lr` or `--clips` applies from there). `--init refiner.safetensors` starts a new run
    folder from a refiner trained before (weights and EMA; a new optimiser and step count): one of the
-   same shape, or one with a level fewer, grown into this shape with the same output (`grown_state`).
+   same shape, or one with a level fewer, grown into this shape with the same output (`grown_state`);
+   one without the light into one with `--lighting` (its FiLM starts at zero); `--zero-head` starts
+   the corrected clips' correction at zero (from a refiner trained for the other clip).
+4. **The light.** With `--lighting` the refiner sees the target's camera-frame probe (the pack's
+   lighting grid, `refiner.light_features`), flipped with its item and its colours permuted alike.
 
 The best refiner goes to `--out/refiner.safetensors` (scores in `--out/best.json`); `--model-dir`
-also writes a model folder: the model's config.json and DiT with the refiner added.
+also writes a model folder: the model's config.json, DiT and refiners with this one added in `--slot`
+("refiner", or "relit_refiner" for a second one beside the model's).
 """
 
 from __future__ import annotations
@@ -41,7 +49,7 @@ from safetensors.torch import load_file, save_file
 from relight_core.checkpoint import CONFIG_FILE, DIT_FILE, load_model
 from relight_core.evaluation.metrics import protocol_psnr
 from relight_core.precision import resolve_precision
-from relight_core.refiner import REFINER_FILE, Refiner, RefinerConfig, network_input
+from relight_core.refiner import REFINER_FILE, REFINER_SLOTS, Refiner, RefinerConfig, light_features, network_input
 from relight_core.tokenizer import build_tokenizer
 from relight_core.training.fast import make_batch, sample_relight
 from relight_core.training.pack import load_packs
@@ -53,19 +61,22 @@ CHECKPOINT_FILE = "checkpoint.pt"
 
 # -- the DiT's outputs ------------------------------------------------------------------------
 
-def unseen_items(names: list[str], seen: list[Path], scenes: int | None) -> list[tuple[int, int]]:
-    """(scene index, target light) for both directions of the first `scenes` scenes no `seen` pack
-    holds (`train` passes the validation pack among them: its scenes never train)."""
+def unseen_items(names: list[str], seen: list[Path], scenes: int | None, same: int = 0) -> list[tuple[int, int, int]]:
+    """(scene index, target light, same) for both directions of the first `scenes` scenes no `seen` pack
+    holds (`train` passes the validation pack among them: its scenes never train), then for the first
+    `same` of them one item relit to the light it was taken under (same = 1: the input is the scene
+    under the target light too, light scene % 2), after them so that a cache of the others stays valid."""
     held = pack_names(seen)
     chosen = [i for i, name in enumerate(names) if str(name) not in held]
     chosen = chosen if scenes is None else chosen[:scenes]
-    return [(i, t) for i in chosen for t in (0, 1)]
+    return [(i, t, 0) for i in chosen for t in (0, 1)] + [(i, i % 2, 1) for i in chosen[:same]]
 
 
 @torch.no_grad()
-def dit_outputs(model: Path, pack: dict, items: list[tuple[int, int]], batch: int = 16,
+def dit_outputs(model: Path, pack: dict, items: list[tuple[int, int, int]], batch: int = 16,
                 log=print) -> dict[str, np.ndarray]:
-    """The model's relit and albedo frames (uint8 [N,3,H,W]) for `items`, as `Relighter` decodes them."""
+    """The model's relit and albedo frames (uint8 [N,3,H,W]) for `items` (`unseen_items`), as `Relighter`
+    decodes them; an item with same = 1 has the scene under the target light as its input too."""
     spec, dit, _ = load_model(model, "cpu")
     if spec.tokenizer.get("type") != "pixel" or not spec.residual:
         raise ValueError(f"{model} is not a residual pixel-tokenizer model; the refiner is for the default model's kind")
@@ -73,11 +84,16 @@ def dit_outputs(model: Path, pack: dict, items: list[tuple[int, int]], batch: in
     autocast = resolve_precision("auto", torch.device("cpu")) == torch.bfloat16
     relit, albedo = [], []
     started = time.time()
-    for start in range(0, len(items), batch):
+    start, batches = 0, 0
+    while start < len(items):
         part = items[start:start + batch]
-        scenes = torch.tensor([s for s, _ in part])
-        targets = torch.tensor([t for _, t in part])
-        data = make_batch(pack, tokenizer, scenes, targets, torch.zeros(len(part), dtype=torch.bool))
+        kinds = [same for _, _, same in part]
+        if len(set(kinds)) > 1:                                     # one kind a batch: cut at the change
+            part = part[:kinds.index(1 - kinds[0])]
+        scenes = torch.tensor([s for s, _, _ in part])
+        targets = torch.tensor([t for _, t, _ in part])
+        mix = torch.ones(len(part), 2) if part[0][2] else None       # make_batch: the input under the target light
+        data = make_batch(pack, tokenizer, scenes, targets, torch.zeros(len(part), dtype=torch.bool), mix)
         x0 = sample_relight(dit, data, spec.steps, autocast=autocast, residual=True)
         t = data["input"].shape[2]
         source = tokenizer.decode(data["input"])[:, :, 0].float()
@@ -85,23 +101,26 @@ def dit_outputs(model: Path, pack: dict, items: list[tuple[int, int]], batch: in
             frames = tokenizer.decode(x0[:, :, clip * t:(clip + 1) * t].float())[:, :, 0]
             frames = source + gain * (frames - source)            # the gain Relighter's denoiser applies
             out.append(((frames.clamp(-1, 1) + 1) * 127.5).round().to(torch.uint8).numpy())
-        if start // batch % 25 == 0:
+        if batches % 25 == 0:
             log(f"DiT outputs: {start + len(part)} of {len(items)} items, {time.time() - started:.0f} s")
+        start, batches = start + len(part), batches + 1
     return {"relit": np.concatenate(relit), "albedo": np.concatenate(albedo)}
 
 
-def cached_outputs(path: Path, model: Path, pack: dict, items: list[tuple[int, int]], log=print) -> dict:
-    """`dit_outputs` for `items`, kept in `path`: the items it holds already (by scene name and direction)
-    are read from it, only the others are computed, and the file is rewritten with all of them in order."""
-    names = np.array([str(pack["names"][s]) for s, _ in items])
-    targets = np.array([t for _, t in items])
+def cached_outputs(path: Path, model: Path, pack: dict, items: list[tuple[int, int, int]], log=print) -> dict:
+    """`dit_outputs` for `items`, kept in `path`: the items it holds already (by scene name, direction and
+    same) are read from it, only the others are computed, and the file is rewritten with all of them in order."""
+    names = np.array([str(pack["names"][s]) for s, _, _ in items])
+    targets = np.array([t for _, t, _ in items])
+    same = np.array([k for _, _, k in items], dtype=np.int64)
     out, missing = None, list(range(len(items)))
     if path.is_file():
         with np.load(path, allow_pickle=False) as z:
-            if np.array_equal(z["names"], names) and np.array_equal(z["targets"], targets):
+            held = z["same"] if "same" in z.files else np.zeros(len(z["names"]), np.int64)   # older files: none
+            if np.array_equal(z["names"], names) and np.array_equal(z["targets"], targets) and np.array_equal(held, same):
                 return {"relit": z["relit"], "albedo": z["albedo"]}
-            where = {(str(n), int(t)): i for i, (n, t) in enumerate(zip(z["names"], z["targets"]))}
-            rows = [where.get((n, int(t))) for n, t in zip(names, targets)]
+            where = {(str(n), int(t), int(k)): i for i, (n, t, k) in enumerate(zip(z["names"], z["targets"], held))}
+            rows = [where.get((n, int(t), int(k))) for n, t, k in zip(names, targets, same)]
             missing = [i for i, r in enumerate(rows) if r is None]
             hits = [i for i, r in enumerate(rows) if r is not None]
             if hits:
@@ -116,17 +135,22 @@ def cached_outputs(path: Path, model: Path, pack: dict, items: list[tuple[int, i
         else:
             for key, frames in out.items():
                 frames[missing] = fresh[key]
-    np.savez(path, names=names, targets=targets, **out)
+    np.savez(path, names=names, targets=targets, same=same, **out)
     return out
 
 
-def item_tensors(pack: dict, items: list[tuple[int, int]], outputs: dict, spec, base: str) -> dict:
-    """uint8 tensors per item: input, target, albedo_t, relit, albedo (the DiT's), mask; for base
-    "filtered" also f_relit, f_albedo (after the model's offset filter, as `Relighter._smoothed`)."""
-    scenes = torch.tensor([s for s, _ in items])
-    targets = torch.tensor([t for _, t in items])
-    data = {"input": pack["rgb"][scenes, 1 - targets], "target": pack["rgb"][scenes, targets],
+def item_tensors(pack: dict, items: list[tuple[int, int, int]], outputs: dict, spec, base: str) -> dict:
+    """uint8 tensors per item: input, target, albedo_t, relit, albedo (the DiT's), mask; env, the target's
+    camera-frame probe on the pack's lighting grid (float32 [N,s,s,3]); for base "filtered" also f_relit,
+    f_albedo (after the model's offset filter, as `Relighter._smoothed`); same, True where the input is the
+    scene under the target light too."""
+    scenes = torch.tensor([s for s, _, _ in items])
+    targets = torch.tensor([t for _, t, _ in items])
+    same = torch.tensor([bool(k) for _, _, k in items])
+    data = {"input": pack["rgb"][scenes, torch.where(same, targets, 1 - targets)], "target": pack["rgb"][scenes, targets],
+            "same": same,
             "albedo_t": pack["albedo"][scenes], "mask": pack["mask"][scenes],
+            "env": torch.as_tensor(pack["env"])[scenes, targets].float().contiguous(),
             "relit": torch.from_numpy(outputs["relit"]), "albedo": torch.from_numpy(outputs["albedo"])}
     if base == "filtered":
         radii = spec.offset_filter
@@ -164,11 +188,13 @@ def item_loss(pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor) -> t
 
 
 def model_inputs(data: dict, index, base: str, flip: torch.Tensor | None = None):
-    """(network input [B,9|15,H,W], relit base, albedo base) in [-1, 1] for items `index`."""
+    """(network input [B,9|15,H,W], relit base, albedo base) in [-1, 1] for items `index`, and `get`, which
+    reads any other of their tensors (flipped alike: images and masks along x, the probe env u → 1 − u)."""
     def get(key):
         x = data[key][index]
         if flip is not None:
-            x = torch.where(flip.view(-1, *([1] * (x.dim() - 1))), x.flip(-1), x)
+            axis = 2 if key == "env" else -1    # env [B,s,s,3]: the panorama's u axis
+            x = torch.where(flip.view(-1, *([1] * (x.dim() - 1))), x.flip(axis), x)
         return x
 
     filtered = (_signed(get("f_relit")), _signed(get("f_albedo"))) if base == "filtered" else None
@@ -191,9 +217,10 @@ def validate(refiner: Refiner, data: dict, autocast: bool) -> dict[str, float]:
     relit, albedo = [], []
     for start in range(0, len(data["input"]), 32):
         index = slice(start, start + 32)
-        x, r, a, _ = model_inputs(data, index, refiner.config.base)
+        x, r, a, get = model_inputs(data, index, refiner.config.base)
         with torch.autocast("cpu", dtype=torch.bfloat16, enabled=autocast):
-            delta = refiner.correction(x.contiguous(memory_format=torch.channels_last)).float()
+            delta = refiner.correction(x.contiguous(memory_format=torch.channels_last),
+                                       get("env") if refiner.config.lighting else None).float()
         r, a = refiner.corrected(delta, r, a)
         relit.append((r + 1) / 2)
         albedo.append((a + 1) / 2)
@@ -201,10 +228,16 @@ def validate(refiner: Refiner, data: dict, autocast: bool) -> dict[str, float]:
 
 
 def scores(data: dict, relit: np.ndarray, albedo: np.ndarray) -> dict[str, float]:
+    """The protocol's mean PSNR: relit over the items relit to another light, albedo over all; where there
+    are items relit to their own light, "same" (their relit PSNR: reported, not what the best is chosen by)."""
     target, albedo_t, mask = _hwc(data["target"]), _hwc(data["albedo_t"]), data["mask"].numpy()
-    return {"relit": round(float(np.mean([protocol_psnr(relit[i], target[i], mask[i]) for i in range(len(mask))])), 3),
-            "albedo": round(float(np.mean([protocol_psnr(albedo[i], albedo_t[i], mask[i])
-                                           for i in range(len(mask))])), 3)}
+    same = data["same"].numpy() if "same" in data else np.zeros(len(mask), bool)
+    relit_psnr = np.array([protocol_psnr(relit[i], target[i], mask[i]) for i in range(len(mask))])
+    out = {"relit": round(float(relit_psnr[~same].mean()), 3),
+           "albedo": round(float(np.mean([protocol_psnr(albedo[i], albedo_t[i], mask[i]) for i in range(len(mask))])), 3)}
+    if same.any():
+        out["same"] = round(float(relit_psnr[same].mean()), 3)
+    return out
 
 
 def train(args: argparse.Namespace, log=print) -> dict:
@@ -214,16 +247,16 @@ def train(args: argparse.Namespace, log=print) -> dict:
     torch.set_num_threads(args.threads)
     spec, _, _ = load_model(args.model, "cpu")
     config = RefinerConfig(widths=tuple(args.widths), blocks=args.blocks, base=args.base, clips=tuple(args.clips),
-                           flip_average=args.flip_average)
+                           flip_average=args.flip_average, lighting=args.lighting)
     pack = load_packs(args.pack)
-    items = unseen_items(pack["names"], [*args.seen, args.val_pack], args.scenes)
+    items = unseen_items(pack["names"], [*args.seen, args.val_pack], args.scenes, args.same_scenes)
     if not items:
         raise ValueError("no scene of the packs is left once the --seen packs' scenes are taken out")
     outputs = cached_outputs(out / "outputs-train.npz", args.model, pack, items, log)
     train_data = item_tensors(pack, items, outputs, spec, config.base)
     del pack
     val_pack = load_packs(args.val_pack)
-    val_items = [(i, t) for i in range(len(val_pack["names"])) for t in (0, 1)]
+    val_items = unseen_items(val_pack["names"], [], None, len(val_pack["names"]) if args.same_scenes else 0)
     val_outputs = cached_outputs(out / "outputs-val.npz", args.model, val_pack, val_items, log)
     val_data = item_tensors(val_pack, val_items, val_outputs, spec, config.base)
     del val_pack
@@ -253,6 +286,13 @@ def train(args: argparse.Namespace, log=print) -> dict:
     else:
         if args.init is not None:
             how = initial_weights(model, args.init)
+            if args.zero_head:
+                with torch.no_grad():
+                    for k, clip in enumerate(("relit", "albedo")):
+                        if clip in config.clips:
+                            model.head.weight[3 * k:3 * k + 3] = 0
+                            model.head.bias[3 * k:3 * k + 3] = 0
+                how += "; the corrected clips' head set to zero"
             ema.load_state_dict(model.state_dict())
             state["start"]["init"] = validate(ema, val_data, autocast)   # what the run must beat
             log(f"starting from the refiner in {args.init}, {how} (a new optimiser)")
@@ -261,7 +301,8 @@ def train(args: argparse.Namespace, log=print) -> dict:
 
     def save_best(score: dict) -> None:
         save_file({k: v.contiguous() for k, v in ema.state_dict().items()}, out / REFINER_FILE)
-        best = {"step": state["step"], "val": {c: score[c] for c in config.clips}, "start": state["start"],
+        kept = [*config.clips, *(["same"] if "same" in score and "relit" in config.clips else [])]
+        best = {"step": state["step"], "val": {k: score[k] for k in kept}, "start": state["start"],
                 "refiner": config.to_dict(),
                 "model": str(args.model), "train_items": len(items), "val_items": len(val_items)}
         (out / "best.json").write_text(json.dumps(best, indent=1))
@@ -275,14 +316,17 @@ def train(args: argparse.Namespace, log=print) -> dict:
         flip = torch.rand(args.batch, generator=generator) < 0.5
         x, r, a, get = model_inputs(train_data, index, config.base, flip)
         targets = {"relit": _signed(get("target")), "albedo": _signed(get("albedo_t"))}
+        env = get("env")
         if args.permute_colours:
             order = torch.argsort(torch.rand(args.batch, 3, generator=generator), dim=1)
             x, r, a = (permute_colours(t, order) for t in (x, r, a))
             targets = {k: permute_colours(t, order) for k, t in targets.items()}
+            env = env.gather(3, order.view(-1, 1, 1, 3).expand_as(env))     # the light's colours alike
         for group in optimizer.param_groups:
             group["lr"] = args.lr * min(1.0, (state["step"] + 1) / args.warmup)
         with torch.autocast("cpu", dtype=torch.bfloat16, enabled=autocast):
-            delta = model(x.contiguous(memory_format=torch.channels_last)).float()
+            delta = model(x.contiguous(memory_format=torch.channels_last),
+                          light_features(env) if config.lighting else None).float()
         mask = get("mask")
         loss = sum(item_loss(base + delta[:, k:k + 3], targets[clip], mask)
                    for clip, base, k in (("relit", r, 0), ("albedo", a, 3)) if clip in config.clips)
@@ -315,7 +359,7 @@ def train(args: argparse.Namespace, log=print) -> dict:
         raise ValueError("no validation ran, so no refiner was kept; give more --minutes")
     best = json.loads((out / "best.json").read_text())
     if args.model_dir is not None:
-        write_model(Path(args.model), out, Path(args.model_dir), best)
+        write_model(Path(args.model), out, Path(args.model_dir), best, args.slot)
     return best
 
 
@@ -327,14 +371,19 @@ def initial_weights(refiner: Refiner, path: Path) -> str:
         state = load_file(str(path))
     except Exception as exc:  # safetensors raises its own error types for corrupt headers
         raise ValueError(f"--init {path} is not a readable safetensors file ({exc})") from exc
+    lit = ""
+    if refiner.config.lighting and not any(key.startswith("film.") for key in state):
+        # a refiner without the light: it gains the FiLM, which starts at zero (the same output)
+        state = {**state, **{k: v for k, v in refiner.state_dict().items() if k.startswith("film.")}}
+        lit = ", with the light's FiLM new"
     try:
         refiner.load_state_dict(state)
-        return "as it is"
+        return "as it is" + lit
     except RuntimeError:
         pass
     try:
         refiner.load_state_dict(grown_state(state, refiner))
-        return f"grown by a level ({refiner.config.widths[-1]} channels at 1/{2 ** (len(refiner.config.widths) - 1)} size)"
+        return f"grown by a level ({refiner.config.widths[-1]} channels at 1/{2 ** (len(refiner.config.widths) - 1)} size){lit}"
     except (RuntimeError, KeyError, ValueError) as exc:
         raise ValueError(f"--init {path} is not a refiner of this shape nor one with a level fewer; give the "
                          "--widths, --blocks and --base it was trained with (or those plus one more width)") from exc
@@ -370,15 +419,19 @@ def grown_state(state: dict[str, torch.Tensor], refiner: Refiner) -> dict[str, t
     return grown
 
 
-def write_model(model: Path, run: Path, folder: Path, best: dict) -> Path:
-    """A model folder: `model`'s DiT and config.json with the run's refiner added."""
+def write_model(model: Path, run: Path, folder: Path, best: dict, slot: str = "refiner") -> Path:
+    """A model folder: `model`'s DiT, config.json and refiners with the run's refiner added in `slot`
+    ("refiner" or "relit_refiner", `REFINER_SLOTS`; a refiner `model` has in the other slot stays)."""
     folder.mkdir(parents=True, exist_ok=True)
+    config = json.loads((model / CONFIG_FILE).read_text())
     if folder.resolve() != model.resolve():
         shutil.copyfile(model / DIT_FILE, folder / DIT_FILE)
-    shutil.copyfile(run / REFINER_FILE, folder / REFINER_FILE)
-    config = json.loads((model / CONFIG_FILE).read_text())
-    config["refiner"] = best["refiner"]
-    config.setdefault("notes", {})["refiner"] = {k: best[k] for k in ("step", "val", "start", "train_items", "val_items")}
+        for other, file in REFINER_SLOTS.items():
+            if other != slot and config.get(other) is not None:
+                shutil.copyfile(model / file, folder / file)
+    shutil.copyfile(run / REFINER_FILE, folder / REFINER_SLOTS[slot])
+    config[slot] = best["refiner"]
+    config.setdefault("notes", {})[slot] = {k: best[k] for k in ("step", "val", "start", "train_items", "val_items")}
     (folder / CONFIG_FILE).write_text(json.dumps(config, indent=2) + "\n")
     return folder
 
@@ -406,6 +459,15 @@ def main(argv: list[str] | None = None) -> int:
                         help="the frames it learns to correct (its loss, the choice of the best, the model's config)")
     parser.add_argument("--flip-average", action="store_true",
                         help="the refiner averages its correction with the mirror image's (validation and the model's config)")
+    parser.add_argument("--same-scenes", type=int, default=0,
+                        help="also train on this many scenes relit to their own light (and validate on every validation "
+                             "scene so), so that a refiner that sees the light leaves a photo alone under its own light")
+    parser.add_argument("--lighting", action="store_true",
+                        help="the refiner sees the target light (refiner.light_features through FiLM)")
+    parser.add_argument("--zero-head", action="store_true",
+                        help="with --init: start the corrected clips' correction at zero (from a refiner trained for other clips)")
+    parser.add_argument("--slot", choices=tuple(REFINER_SLOTS), default="refiner",
+                        help="--model-dir: the config.json entry it goes in (relit_refiner: a second refiner beside the model's)")
     parser.add_argument("--permute-colours", action="store_true",
                         help="augment each training item with a random order of its RGB channels (all its frames alike)")
     parser.add_argument("--val-every-minutes", type=float, default=7.0)
@@ -421,7 +483,7 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"--model {args.model} holds no {DIT_FILE}; give a model folder")
     try:
         RefinerConfig.from_dict({"widths": args.widths, "blocks": args.blocks, "base": args.base, "clips": args.clips,
-                                 "flip_average": args.flip_average})
+                                 "flip_average": args.flip_average, "lighting": args.lighting})
     except ValueError as error:
         parser.error(str(error))
     threads = torch.get_num_threads()
