@@ -52,15 +52,15 @@ def prep() -> None:
         names = [str(n) for n in pack["names"]]
         with np.load(outputs_path) as z:
             index = {n: i for i, n in enumerate(names)}
-            items = [(index[str(n)], int(t)) for n, t in zip(z["names"], z["targets"])]
+            items = [(index[str(n)], int(t), 0) for n, t in zip(z["names"], z["targets"])]
             outputs = {"relit": z["relit"], "albedo": z["albedo"]}
         started = time.time()
         data = item_tensors(pack, items, outputs, spec, "filtered")
-        scenes = torch.tensor([s for s, _ in items])
-        targets = torch.tensor([t for _, t in items])
+        scenes = torch.tensor([s for s, _, _ in items])
+        targets = torch.tensor([t for _, t, _ in items])
         data["env"] = torch.as_tensor(pack["env"])[scenes, targets].float().contiguous()
-        probe = [probes_of(names[s]) for s, _ in items]
-        data["target_probe"] = [p[t] for p, (_, t) in zip(probe, items)]
+        probe = [probes_of(names[s]) for s, _, _ in items]
+        data["target_probe"] = [p[t] for p, (_, t, _) in zip(probe, items)]
         data["scene_probes"] = probe
         torch.save(data, OUT / f"{tag}.pt")
         print(tag, len(items), f"{time.time() - started:.0f} s", flush=True)
@@ -71,11 +71,11 @@ def prep_test() -> None:
     from relight_core.training.refine import cached_outputs
     spec, _, _ = load_model(MODEL, "cpu")
     pack = load_packs([C / "test.npz"])
-    items = [(s, t) for s in range(len(pack["names"])) for t in (0, 1)]
+    items = [(s, t, 0) for s in range(len(pack["names"])) for t in (0, 1)]
     outputs = cached_outputs(OUT / "outputs-test.npz", MODEL, pack, items)
     data = item_tensors(pack, items, outputs, spec, "filtered")
-    scenes = torch.tensor([s for s, _ in items])
-    targets = torch.tensor([t for _, t in items])
+    scenes = torch.tensor([s for s, _, _ in items])
+    targets = torch.tensor([t for _, t, _ in items])
     data["env"] = torch.as_tensor(pack["env"])[scenes, targets].float().contiguous()
     torch.save(data, OUT / "test.pt")
 
