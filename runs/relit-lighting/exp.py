@@ -22,14 +22,12 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from torch import nn
-from torch.nn import functional as F
 from safetensors.torch import load_file
 
 from relight_core.checkpoint import load_model
 from relight_core.evaluation.metrics import protocol_psnr
 from relight_core.precision import resolve_precision
-from relight_core.refiner import Refiner, RefinerConfig
+from relight_core.refiner import Refiner, RefinerConfig, light_features
 from relight_core.training.pack import load_packs
 from relight_core.training.refine import _hwc, _signed, item_loss, item_tensors, model_inputs, permute_colours
 
@@ -85,7 +83,7 @@ def score_test(args) -> None:
     """Per-item relit PSNR and margin on the packed test split for the filtered frames and each run's best
     EMA (`--out` dirs), paired against the filtered frames."""
     torch.set_num_threads(args.threads)
-    data = torch.load(OUT / "test.pt", weights_only=False)
+    data = torch.load(OUT / "test.pt", weights_only=True)
     target, source, mask = _hwc(data["target"]), _hwc(data["input"]), data["mask"].numpy()
     autocast = resolve_precision("auto", torch.device("cpu")) == torch.bfloat16
 
@@ -96,70 +94,29 @@ def score_test(args) -> None:
 
     base_own, base_margin = per_item(_hwc(data["f_relit"]))
     print(f"filtered: relit {base_own.mean():.3f} margin {base_margin.mean():+.3f}")
-    config = RefinerConfig(widths=(24, 48, 96, 128, 256), blocks=1, base="filtered", clips=("relit",), flip_average=True)
     for run in args.runs:
-        arm = "light" if "light" in Path(run).name else "plain"
-        model = LitRefiner(config) if arm == "light" else Refiner(config)
+        model = make_refiner("light" if "light" in Path(run).name else "plain")
         model.load_state_dict(torch.load(Path(run) / "best.pt", weights_only=True))
         model.eval()
         x, r, _, _ = model_inputs(data, slice(None), "filtered")
         with torch.autocast("cpu", dtype=torch.bfloat16, enabled=autocast):
-            d = correction(model, x.contiguous(memory_format=torch.channels_last), data["env"], arm).float()
+            d = correction(model, x.contiguous(memory_format=torch.channels_last), data["env"]).float()
         own, margin = per_item((((r + d[:, :3]).clamp(-1, 1) + 1) / 2).permute(0, 2, 3, 1).numpy())
         diff = own - base_own
         print(f"{run}: relit {own.mean():.3f} margin {margin.mean():+.3f}; paired relit {diff.mean():+.3f} ± "
               f"{diff.std(ddof=1) / np.sqrt(len(diff)):.3f}, margin {margin.mean() - base_margin.mean():+.3f}")
 
 
-def light_features(env: torch.Tensor) -> torch.Tensor:
-    """[B,32,32,3] camera-frame radiance → [B,192]: area-averaged to 8×8, mean 1, log."""
-    e = F.adaptive_avg_pool2d(env.permute(0, 3, 1, 2).float(), 8)
-    e = e / e.mean((1, 2, 3), keepdim=True).clamp_min(1e-6)
-    return torch.log(e + 0.05).flatten(1)
+def make_refiner(arm: str) -> Refiner:
+    """The experiment's refiner: the 5-level relit refiner, flip-averaged, seeing the light in the light arm
+    (relight_core/refiner.py's FiLM, which this experiment first wrote and then moved there)."""
+    return Refiner(RefinerConfig(widths=(24, 48, 96, 128, 256), blocks=1, base="filtered", clips=("relit",),
+                                 flip_average=True, lighting=arm == "light"))
 
 
-class LitRefiner(Refiner):
-    def __init__(self, config: RefinerConfig, hidden: int = 256):
-        super().__init__(config)
-        w = config.widths
-        self.film_sizes = [w[-1]] + [w[i] for i in reversed(range(len(w) - 1))]
-        self.film = nn.Sequential(nn.Linear(192, hidden), nn.SiLU(), nn.Linear(hidden, 2 * sum(self.film_sizes)))
-        nn.init.zeros_(self.film[-1].weight)
-        nn.init.zeros_(self.film[-1].bias)
-
-    def forward(self, x: torch.Tensor, light: torch.Tensor | None = None) -> torch.Tensor:
-        params = self.film(light).float()
-        films, at = [], 0
-        for size in self.film_sizes:
-            films.append((params[:, at:at + size, None, None], params[:, at + size:at + 2 * size, None, None]))
-            at += 2 * size
-
-        def mod(h, k):
-            g, b = films[k]
-            return h * (1 + g.to(h.dtype)) + b.to(h.dtype)
-
-        h = self.stem(x)
-        skips = []
-        for enc, down in zip(self.enc, self.down):
-            h = enc(h)
-            skips.append(h)
-            h = down(F.silu(h))
-        h = mod(self.mid(h), 0)
-        for k, i in enumerate(reversed(range(len(skips)))):
-            h = F.interpolate(h, size=skips[i].shape[-2:], mode="bilinear", align_corners=False)
-            h = mod(self.dec[i](self.up[i](torch.cat([h, skips[i]], dim=1))), k + 1)
-        return self.head(F.silu(h))
-
-
-def correction(model, x, light_env, arm):
-    """flip-averaged correction; the mirrored pass sees the mirrored light (panorama u → 1 − u)."""
-    both = torch.cat([x, x.flip(-1)])
-    if arm == "light":
-        env = torch.cat([light_env, light_env.flip(2)])
-        out = model(both, light_features(env))
-    else:
-        out = Refiner.forward(model, both)
-    return (out[:len(x)] + out[len(x):].flip(-1)) / 2
+def correction(model: Refiner, x: torch.Tensor, light_env: torch.Tensor) -> torch.Tensor:
+    """The flip-averaged correction; the mirrored pass sees the mirrored light (panorama u → 1 − u)."""
+    return model.correction(x, light_env if model.config.lighting else None)
 
 
 def subset(data: dict, keep: list[int]) -> dict:
@@ -168,13 +125,13 @@ def subset(data: dict, keep: list[int]) -> dict:
 
 
 @torch.no_grad()
-def validate(model, data, arm, autocast) -> dict:
+def validate(model, data, autocast) -> dict:
     relit = []
     for start in range(0, len(data["input"]), 32):
         index = slice(start, start + 32)
         x, r, _, _ = model_inputs(data, index, "filtered")
         with torch.autocast("cpu", dtype=torch.bfloat16, enabled=autocast):
-            d = correction(model, x.contiguous(memory_format=torch.channels_last), data["env"][index], arm).float()
+            d = correction(model, x.contiguous(memory_format=torch.channels_last), data["env"][index]).float()
         relit.append(((r + d[:, :3]).clamp(-1, 1) + 1) / 2)
     relit = torch.cat(relit).permute(0, 2, 3, 1).numpy()
     target, source, mask = _hwc(data["target"]), _hwc(data["input"]), data["mask"].numpy()
@@ -188,8 +145,8 @@ def train(args) -> None:
     torch.set_num_threads(args.threads)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    data = torch.load(OUT / "train.pt", weights_only=False)
-    val5 = torch.load(OUT / "val5.pt", weights_only=False)
+    data = torch.load(OUT / "train.pt", weights_only=True)
+    val5 = torch.load(OUT / "val5.pt", weights_only=True)
     held = [i for i, p in enumerate(data["scene_probes"]) if set(p) & set(HELD)]
     train_idx = [i for i, p in enumerate(data["scene_probes"]) if not set(p) & set(HELD)]
     val_new = [i for i in held if data["target_probe"][i] in HELD]
@@ -198,8 +155,7 @@ def train(args) -> None:
     vnew, train_data = subset(data, val_new), subset(data, train_idx)
     del data
     print(f"train items {len(train_idx)}, held-out-probe val {len(val_new)}, val5 {len(val5['input'])}", flush=True)
-    config = RefinerConfig(widths=(24, 48, 96, 128, 256), blocks=1, base="filtered", clips=("relit",), flip_average=True)
-    model = LitRefiner(config) if args.arm == "light" else Refiner(config)
+    model = make_refiner(args.arm)
     state = load_file(str(MODEL / "refiner.safetensors"))
     state = {k: v.float() for k, v in state.items()}
     state["head.weight"][:3] = 0
@@ -213,7 +169,7 @@ def train(args) -> None:
     opt = torch.optim.AdamW(model.parameters(), lr=args.lr, weight_decay=0.0)
     g = torch.Generator().manual_seed(args.seed)
     log = open(out / "log.jsonl", "a")
-    s0 = {"new": validate(ema, vnew, args.arm, autocast), "val5": validate(ema, val5, args.arm, autocast)}
+    s0 = {"new": validate(ema, vnew, autocast), "val5": validate(ema, val5, autocast)}
     print("step 0", s0, flush=True)
     log.write(json.dumps({"step": 0, **s0}) + "\n")
     log.flush()
@@ -234,7 +190,7 @@ def train(args) -> None:
             group["lr"] = args.lr * min(1.0, (step + 1) / 100)
         with torch.autocast("cpu", dtype=torch.bfloat16, enabled=autocast):
             xc = x.contiguous(memory_format=torch.channels_last)
-            d = (model(xc, light_features(env)) if args.arm == "light" else model(xc)).float()
+            d = model(xc, light_features(env) if model.config.lighting else None).float()
         loss = item_loss(r + d[:, :3], target, get("mask"))
         opt.zero_grad(set_to_none=True)
         loss.backward()
@@ -248,7 +204,7 @@ def train(args) -> None:
             print(f"step {step} loss {loss.item():.4f} {(time.time() - started) / 60:.1f} min", flush=True)
         if time.time() - last > args.val_every * 60 or time.time() - started >= args.minutes * 60:
             last = time.time()
-            s = {"new": validate(ema, vnew, args.arm, autocast), "val5": validate(ema, val5, args.arm, autocast)}
+            s = {"new": validate(ema, vnew, autocast), "val5": validate(ema, val5, autocast)}
             rec = {"step": step, "minutes": round((time.time() - started) / 60, 1), **s}
             print(rec, flush=True)
             log.write(json.dumps(rec) + "\n")
