@@ -13,8 +13,11 @@ where the base is the DiT's frames ("raw") or those after the model's offset fil
 configured for are corrected. A refiner with `lighting` also sees the target light: the camera-frame
 probe area-averaged to 8×8 (`light_features`), through an MLP that scales and shifts every channel of
 its middle and decoder levels (FiLM; zero at the start, so it begins as the refiner without light);
-one without it follows the probe only through the DiT. Its last layer starts at zero, so an untrained
-refiner returns its base unchanged. With `flip_average` its correction is the mean of the one for the
+one without it follows the probe only through the DiT. With `relit_gain` the relit correction is not
+added but multiplies the relit base as a smooth gain (one log gain per k×k-pixel cell, interpolated):
+it can brighten, darken and tint regions, and cannot draw an edge or a haze over black the base does
+not have — an added correction learned to on photos unlike the training scenes (docs/QUALITY.md).
+Its last layer starts at zero, so an untrained refiner returns its base unchanged. With `flip_average` its correction is the mean of the one for the
 frames and the one for their mirror image flipped back (two passes, one batch; the mirrored pass sees
 the mirrored light, u → 1 − u).
 
@@ -38,6 +41,7 @@ RELIT_REFINER_FILE = "relit_refiner.safetensors"
 REFINER_SLOTS = {"refiner": REFINER_FILE, "relit_refiner": RELIT_REFINER_FILE}   # config.json key → weights
 LIGHT_GRID = 8                                 # the probe as the refiner sees it: 8×8 area averages
 LIGHT_FEATURES = 3 * LIGHT_GRID * LIGHT_GRID
+GAIN_EPSILON = 0.02                            # `relit_gain`: black plus this is what the gain multiplies
 
 
 @dataclass(frozen=True)
@@ -49,6 +53,10 @@ class RefinerConfig:
     clips: tuple[str, ...] = ("relit", "albedo")  # the frames it corrects; the others stay the base's
     flip_average: bool = False                    # average the correction with the mirror image's
     lighting: bool = False                        # sees the target light (FiLM from `light_features`)
+    relit_gain: int = 0                           # 0: the relit correction is added; k > 0: it is a log gain
+                                                  # on the relit base, averaged over k×k-pixel cells and
+                                                  # smoothly interpolated (`corrected`): it can brighten,
+                                                  # darken and tint, but draws no edge the base lacks
 
     @classmethod
     def from_dict(cls, data: dict) -> "RefinerConfig":
@@ -56,6 +64,7 @@ class RefinerConfig:
         base, clips = data.get("base", cls.base), data.get("clips", list(cls.clips))
         flip_average = data.get("flip_average", cls.flip_average)
         lighting = data.get("lighting", cls.lighting)
+        relit_gain = data.get("relit_gain", cls.relit_gain)
 
         def whole(v, low, high):
             return isinstance(v, int) and not isinstance(v, bool) and low <= v <= high
@@ -64,12 +73,13 @@ class RefinerConfig:
                 or not all(whole(w, 1, 1024) for w in widths) or not whole(blocks, 0, 8)
                 or base not in ("raw", "filtered") or not isinstance(clips, (list, tuple))
                 or not clips or not set(clips) <= {"relit", "albedo"} or not isinstance(flip_average, bool)
-                or not isinstance(lighting, bool)):
+                or not isinstance(lighting, bool) or not whole(relit_gain, 0, 64)):
             raise ValueError(f"a refiner takes 1–6 widths from 1 to 1024, 0–8 blocks, base raw or filtered, "
-                             f"clips relit and/or albedo, flip_average and lighting true or false; got {data!r}")
+                             f"clips relit and/or albedo, flip_average and lighting true or false and a "
+                             f"relit_gain cell of 0–64 pixels; got {data!r}")
         return cls(widths=tuple(widths), blocks=blocks, base=base,
                    clips=tuple(c for c in ("relit", "albedo") if c in clips), flip_average=flip_average,
-                   lighting=lighting)
+                   lighting=lighting, relit_gain=relit_gain)
 
     def to_dict(self) -> dict:
         out = {"widths": list(self.widths), "blocks": self.blocks, "base": self.base, "clips": list(self.clips)}
@@ -77,12 +87,15 @@ class RefinerConfig:
             out["flip_average"] = True
         if self.lighting:
             out["lighting"] = True
+        if self.relit_gain:
+            out["relit_gain"] = self.relit_gain
         return out
 
     @property
     def shape(self) -> tuple:
-        """What its weights depend on (widths, blocks, base, lighting); `clips` and `flip_average` only
-        change how they are used, so a run may resume or start from weights with other ones."""
+        """What its weights depend on (widths, blocks, base, lighting); `clips`, `flip_average` and
+        `relit_gain` only change how they are used, so a run may resume or start from weights with other
+        ones."""
         return self.widths, self.blocks, self.base, self.lighting
 
     @property
@@ -205,14 +218,27 @@ class Refiner(nn.Module):
         x, relit, albedo = network_input(self.config.base, inputs, relit, albedo, filtered)
         return self.corrected(self.correction(x, panoramas).to(relit.dtype), relit, albedo)
 
-    def corrected(self, delta: torch.Tensor, relit: torch.Tensor, albedo: torch.Tensor
+    def corrected(self, delta: torch.Tensor, relit: torch.Tensor, albedo: torch.Tensor, clamp: bool = True
                   ) -> tuple[torch.Tensor, torch.Tensor]:
-        """The base frames (relit, albedo) [B,3,H,W] in [-1, 1] with the corrections `delta` [B,6,H,W] added
-        to the clips it corrects (the others come back as they were). The one place this is done, for
-        training's validation and for use."""
+        """The base frames (relit, albedo) [B,3,H,W] in [-1, 1] with the corrections `delta` [B,6,H,W] applied
+        to the clips it corrects (the others come back as they were): added, or with `relit_gain` the relit
+        one as a smooth gain, (relit + ε)·exp(g) − ε in [0, 1] display values (ε = 0.02), g the correction
+        averaged over relit_gain-pixel cells and bilinearly interpolated back. The one place this is done,
+        for training (`clamp` False: the loss sees values past [-1, 1]) and for use."""
+        def bounded(x: torch.Tensor) -> torch.Tensor:
+            return x.clamp(-1, 1) if clamp else x
+
         if "relit" in self.config.clips:
-            relit = (relit + delta[:, :3]).clamp(-1, 1)
+            if self.config.relit_gain:
+                cell = self.config.relit_gain
+                h, w = relit.shape[-2:]
+                g = F.adaptive_avg_pool2d(delta[:, :3].float(), (-(-h // cell), -(-w // cell)))
+                g = F.interpolate(g, size=(h, w), mode="bilinear", align_corners=False).clamp(-4, 4)
+                eps = 2 * GAIN_EPSILON      # in [-1, 1] units
+                relit = bounded(((relit + 1 + eps) * torch.exp(g) - eps - 1).to(relit.dtype))
+            else:
+                relit = bounded(relit + delta[:, :3])
         if "albedo" in self.config.clips:
-            albedo = (albedo + delta[:, 3:]).clamp(-1, 1)
+            albedo = bounded(albedo + delta[:, 3:])
         return relit, albedo
 

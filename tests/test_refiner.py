@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 import torch
 from safetensors.torch import load_file, save_file
+from torch.nn import functional as F
 
 from relight_core.checkpoint import ModelSpec, load_model, load_refiner, resolve_model
 from relight_core.dit import DiTConfig, JointDiT
@@ -395,3 +396,41 @@ def test_a_relit_refiner_beside_the_albedo_one_corrects_the_relit_frames_with_th
     np.testing.assert_allclose(again.albedo, result.albedo, atol=2e-3)
     with pytest.raises(InputError, match='has relit_refiner .*; it takes "widths"'):
         ModelSpec.from_json({**data, "relit_refiner": {"lighting": "yes"}})
+
+
+def test_a_relit_gain_refiner_multiplies_its_base_by_a_smooth_field_and_draws_no_edge_of_its_own():
+    torch.manual_seed(6)
+    config = RefinerConfig(widths=(4, 8), blocks=1, base="filtered", clips=("relit",), relit_gain=8)
+    assert RefinerConfig.from_dict(config.to_dict()) == config and config.to_dict()["relit_gain"] == 8
+    for bad in (-1, 2.5, True, 65):
+        with pytest.raises(ValueError, match="relit_gain"):
+            RefinerConfig.from_dict({**config.to_dict(), "relit_gain": bad})
+    refiner = Refiner(config)
+    base = torch.full((1, 3, 32, 32), -0.2)
+    base[..., 16:] = 0.6                                             # one vertical edge
+    albedo = torch.zeros_like(base)
+    # a correction that is the same over each 8×8 cell: the base times its exponential, exactly
+    cells = torch.randn(1, 6, 4, 4) * 0.5
+    delta = cells.repeat_interleave(8, -2).repeat_interleave(8, -1)
+    relit, same_albedo = refiner.corrected(delta, base, albedo, clamp=False)
+    assert torch.equal(same_albedo, albedo)                          # it corrects the relit frames alone
+    inside = (slice(None), slice(None), slice(4, 28), slice(4, 28))  # cell centres and between: bilinear
+    expected = F.interpolate(cells[:, :3], size=(32, 32), mode="bilinear", align_corners=False)
+    eps = 2 * 0.02
+    torch.testing.assert_close(relit, (base + 1 + eps) * torch.exp(expected) - eps - 1, atol=1e-5, rtol=1e-5)
+    assert not torch.allclose(relit[inside], base[inside] + delta[:, :3][inside], atol=1e-2)   # not added
+    # Pixel noise as the correction: added, it would draw edges everywhere; as a gain it is averaged
+    # away within each cell, so the result's steps outside the base's own edge stay small.
+    noise = torch.randn(1, 6, 32, 32)
+    gained, _ = refiner.corrected(noise, base, albedo)
+    added, _ = Refiner(replace(config, relit_gain=0)).corrected(noise, base, albedo)
+    steps = lambda x: (x[..., 1:] - x[..., :-1]).abs()[..., [c for c in range(31) if c != 15]]  # noqa: E731
+    assert steps(gained).max() < 0.25 * steps(added).max()
+    # A black base stays black under a gain near one; a constant base stays constant under a constant gain.
+    black = torch.full_like(base, -1.0)
+    near_one, _ = refiner.corrected(torch.full_like(delta, 0.05), black, albedo)
+    assert (near_one + 1).max() < 0.005
+    # The training loss sees the same correction unclamped; Relighter's result is clamped to [-1, 1].
+    bright, _ = refiner.corrected(torch.full_like(delta, 2.0), base, albedo)
+    assert bright.max() == 1.0
+

@@ -247,7 +247,7 @@ def train(args: argparse.Namespace, log=print) -> dict:
     torch.set_num_threads(args.threads)
     spec, _, _ = load_model(args.model, "cpu")
     config = RefinerConfig(widths=tuple(args.widths), blocks=args.blocks, base=args.base, clips=tuple(args.clips),
-                           flip_average=args.flip_average, lighting=args.lighting)
+                           flip_average=args.flip_average, lighting=args.lighting, relit_gain=args.relit_gain)
     pack = load_packs(args.pack)
     items = unseen_items(pack["names"], [*args.seen, args.val_pack], args.scenes, args.same_scenes)
     if not items:
@@ -328,8 +328,8 @@ def train(args: argparse.Namespace, log=print) -> dict:
             delta = model(x.contiguous(memory_format=torch.channels_last),
                           light_features(env) if config.lighting else None).float()
         mask = get("mask")
-        loss = sum(item_loss(base + delta[:, k:k + 3], targets[clip], mask)
-                   for clip, base, k in (("relit", r, 0), ("albedo", a, 3)) if clip in config.clips)
+        refined = dict(zip(("relit", "albedo"), model.corrected(delta, r, a, clamp=False)))
+        loss = sum(item_loss(refined[clip], targets[clip], mask) for clip in config.clips)
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
@@ -464,6 +464,9 @@ def main(argv: list[str] | None = None) -> int:
                              "scene so), so that a refiner that sees the light leaves a photo alone under its own light")
     parser.add_argument("--lighting", action="store_true",
                         help="the refiner sees the target light (refiner.light_features through FiLM)")
+    parser.add_argument("--relit-gain", type=int, default=0, metavar="CELL",
+                        help="the relit correction is a smooth gain on the relit base, one value per CELL×CELL pixels "
+                             "interpolated (refiner.RefinerConfig.relit_gain): it cannot draw an edge; 0 (default): added")
     parser.add_argument("--zero-head", action="store_true",
                         help="with --init: start the corrected clips' correction at zero (from a refiner trained for other clips)")
     parser.add_argument("--slot", choices=tuple(REFINER_SLOTS), default="refiner",
@@ -483,7 +486,8 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"--model {args.model} holds no {DIT_FILE}; give a model folder")
     try:
         RefinerConfig.from_dict({"widths": args.widths, "blocks": args.blocks, "base": args.base, "clips": args.clips,
-                                 "flip_average": args.flip_average, "lighting": args.lighting})
+                                 "flip_average": args.flip_average, "lighting": args.lighting,
+                                 "relit_gain": args.relit_gain})
     except ValueError as error:
         parser.error(str(error))
     threads = torch.get_num_threads()
