@@ -23,8 +23,8 @@ the mirrored light, u → 1 − u).
 
 A model folder holds up to two: `refiner.safetensors` (config.json's "refiner" entry) and
 `relit_refiner.safetensors` ("relit_refiner"), each correcting its clips from the same frames. The
-shipped default has the first, for its albedo alone; a second for the relit frames that sees the light
-was measured and not shipped (docs/QUALITY.md says why). Trained by `python -m relight_core.training.refine` on the
+shipped default has both: the first for its albedo alone, the second for the relit frames, seeing the
+light and correcting them by a smooth gain (docs/QUALITY.md). Trained by `python -m relight_core.training.refine` on the
 frozen DiT's outputs.
 """
 
