@@ -263,16 +263,17 @@ def test_refine_trains_on_unseen_scenes_resumes_and_writes_a_model_the_relighter
     result = relighter.relight(RelightRequest(frames=frames, probe=np.ones((16, 32, 3), np.float32)))
     assert result.relit.shape == frames.shape and np.isfinite(result.albedo).all()
     # A relit refiner that sees the light, beside that albedo one: from the albedo refiner's weights with its
-    # relit correction set to zero (so it starts at the filtered frames) and the light's FiLM new.
+    # relit correction set to zero (so it starts at the filtered frames), the light's FiLM new, and its relit
+    # correction a smooth gain (--relit-gain, as shipped).
     lit = [*fresh[:fresh.index("--out")], "--out", str(tmp_path / "run4"), "--widths", "4", "8", "--batch", "2",
            "--minutes", "0.03", "--val-every-minutes", "0.01", "--warmup", "2", "--scenes", "2",
            "--model", str(tmp_path / "refined"), "--model-dir", str(tmp_path / "refined3"), "--flip-average",
            "--permute-colours", "--clips", "relit", "--lighting", "--zero-head", "--slot", "relit_refiner",
-           "--same-scenes", "1", *init]
+           "--same-scenes", "1", "--relit-gain", "4", *init]
     assert refine.main(lit) == 0
     assert "with the light's FiLM new; the corrected clips' head set to zero" in capsys.readouterr().out
     best4 = json.loads((tmp_path / "run4" / "best.json").read_text())
-    assert best4["refiner"]["lighting"] and best4["refiner"]["clips"] == ["relit"]
+    assert best4["refiner"]["lighting"] and best4["refiner"]["clips"] == ["relit"] and best4["refiner"]["relit_gain"] == 4
     # --same-scenes: one training scene and every validation scene also relit to its own light, scored apart.
     assert best4["train_items"] == 5 and best4["val_items"] == 6 and "same" in best4["val"]
     kinds = np.load(tmp_path / "run4" / "outputs-train.npz")
@@ -288,6 +289,7 @@ def test_refine_trains_on_unseen_scenes_resumes_and_writes_a_model_the_relighter
     assert config3["relit_refiner"]["lighting"] and "relit_refiner" in config3["notes"]
     both = Relighter.load(str(tmp_path / "refined3"))
     assert both.refiner.config.clips == ("albedo",) and both.relit_refiner.config.lighting
+    assert both.relit_refiner.config.relit_gain == 4 and both.refiner.config.relit_gain == 0
     twice = both.relight(RelightRequest(frames=frames, probe=np.ones((16, 32, 3), np.float32)))
     np.testing.assert_allclose(twice.albedo, result.albedo, atol=2e-3)     # the albedo refiner is the one copied
     # A second shape on the same run folder is refused in one sentence, as is a model that is not a pixel model.
