@@ -15,9 +15,10 @@ probe area-averaged to 8×8 (`light_features`), through an MLP that scales and s
 its middle and decoder levels (FiLM; zero at the start, so it begins as the refiner without light);
 one without it follows the probe only through the DiT. With `relit_gain` the relit correction is not
 added but multiplies the relit base as a smooth gain (one log gain per k×k-pixel cell, interpolated):
-it can brighten, darken and tint regions, and cannot draw an edge or a haze over black the base does
-not have — an added correction learned to on photos unlike the training scenes (docs/QUALITY.md).
-Its last layer starts at zero, so an untrained refiner returns its base unchanged. With `flip_average` its correction is the mean of the one for the
+it can brighten, darken and tint regions, and cannot draw an edge the base does not have or lift its
+blacks much — an added correction did both on a photo unlike the training scenes (docs/QUALITY.md).
+Its last layer starts at zero, so an untrained refiner returns its base unchanged. With `flip_average`
+its correction is the mean of the one for the
 frames and the one for their mirror image flipped back (two passes, one batch; the mirrored pass sees
 the mirrored light, u → 1 − u).
 
