@@ -291,12 +291,8 @@ class Relighter(CostModel):
         if key in self._latent_cache:
             self._latent_cache.move_to_end(key)
             return self._latent_cache[key]
-        if probe.dim() == 4:  # RelightRequest.camera_probe: the chunk's panoramas, already in the camera frame
-            panoramas = probe
-        else:
-            panoramas = torch.stack([lighting.probe_in_camera(probe, height, width, rotation=r, cam_to_world=camera)
-                                     for r in rotations])
-        panoramas = lighting.lowpass_panorama(panoramas, self.spec.lighting_size)
+        panoramas = lighting.lowpass_panorama(_camera_panoramas(probe, rotations, height, width, camera),
+                                              self.spec.lighting_size)
         if mirror:
             panoramas = panoramas.flip(2)
         encodings = lighting.encode_lighting(panoramas)
@@ -388,12 +384,8 @@ class Relighter(CostModel):
         if (probe is None or request.mode in ("render", "albedo")
                 or not any(r is not None and r.config.lighting for r in (self.refiner, self.relit_refiner))):
             return None
-        if probe.dim() == 4:  # RelightRequest.camera_probe: the chunk's panoramas, already in the camera frame
-            panoramas = probe[:len(rotations)]
-        else:
-            camera = lighting.camera_rotation(request.camera_pitch, request.camera_roll)
-            panoramas = torch.stack([lighting.probe_in_camera(probe, height, width, rotation=r, cam_to_world=camera)
-                                     for r in rotations])
+        camera = lighting.camera_rotation(request.camera_pitch, request.camera_roll)
+        panoramas = _camera_panoramas(probe, rotations, height, width, camera)[:len(rotations)]
         size = self.spec.lighting_size or 32
         return lighting.downsample_panorama(panoramas, min(size, panoramas.shape[1], panoramas.shape[2]))
 
@@ -419,23 +411,22 @@ class Relighter(CostModel):
 
         filtered = (self._smoothed(mode, frames, relit, albedo)
                     if any(r.config.base == "filtered" for r in refiners) else None)
+        refined = [([], []) for _ in refiners]     # per refiner: its relit and albedo parts
+        with torch.no_grad(), self._autocast():
+            for start in range(0, len(frames), 8):  # a few frames at a time: memory stays flat for long clips
+                part = slice(start, start + 8)
+                given = None if filtered is None else (signed(filtered[0][part]), signed(filtered[1][part]))
+                inputs = signed(frames[part]), signed(relit[part]), signed(albedo[part])
+                for refiner, (relit_parts, albedo_parts) in zip(refiners, refined):
+                    r, a = refiner.refine(*inputs, given if refiner.config.base == "filtered" else None,
+                                          light[part].to(self.device) if refiner.config.lighting else None)
+                    relit_parts.append(r.float())
+                    albedo_parts.append(a.float())
         out = list((relit, albedo) if refiners[0].config.base == "raw" else filtered)
-        for refiner in refiners:
-            refined_relit, refined_albedo = [], []
-            with torch.no_grad(), self._autocast():
-                for start in range(0, len(frames), 8):  # a few frames at a time: memory stays flat for long clips
-                    part = slice(start, start + 8)
-                    given = None
-                    if refiner.config.base == "filtered":
-                        given = (signed(filtered[0][part]), signed(filtered[1][part]))
-                    panoramas = light[part].to(self.device) if refiner.config.lighting else None
-                    r, a = refiner.refine(signed(frames[part]), signed(relit[part]), signed(albedo[part]), given,
-                                          panoramas)
-                    refined_relit.append(r.float())
-                    refined_albedo.append(a.float())
-            for k, (clip, parts) in enumerate((("relit", refined_relit), ("albedo", refined_albedo))):
+        for refiner, parts in zip(refiners, refined):
+            for k, clip in enumerate(("relit", "albedo")):
                 if clip in refiner.config.clips:   # a clip it does not correct comes back exactly as it was
-                    out[k] = unsigned(parts)
+                    out[k] = unsigned(parts[k])
         return out[0], out[1]
 
     def _smoothed(self, mode: str, frames: np.ndarray, relit: np.ndarray, albedo: np.ndarray
@@ -485,6 +476,18 @@ class Relighter(CostModel):
     def _autocast(self):
         """Autocast for bf16/fp16, nothing for fp32."""
         return autocast(self.dtype, self.device)
+
+
+def _camera_panoramas(probe: torch.Tensor, rotations: list[float], height: int, width: int,
+                      camera: torch.Tensor | None) -> torch.Tensor:
+    """The target light of a chunk as camera-frame panoramas [T,h,w,3], one per frame: the probe turned by
+    each frame's rotation and seen from the (tilted) camera, or `probe` itself when it is already the
+    chunk's camera-frame panoramas (`RelightRequest.camera_probe`, 4-d). What the DiT's lighting and a
+    refiner that sees the light are both made from."""
+    if probe.dim() == 4:
+        return probe
+    return torch.stack([lighting.probe_in_camera(probe, height, width, rotation=r, cam_to_world=camera)
+                        for r in rotations])
 
 
 def _mirrored(frames: np.ndarray) -> np.ndarray:
