@@ -18,9 +18,8 @@ added but multiplies the relit base as a smooth gain (one log gain per k×k-pixe
 it can brighten, darken and tint regions, and cannot draw an edge the base does not have or lift its
 blacks much — an added correction did both on a photo unlike the training scenes (docs/QUALITY.md).
 Its last layer starts at zero, so an untrained refiner returns its base unchanged. With `flip_average`
-its correction is the mean of the one for the
-frames and the one for their mirror image flipped back (two passes, one batch; the mirrored pass sees
-the mirrored light, u → 1 − u).
+its correction is the mean of the one for the frames and the one for their mirror image flipped back
+(two passes, one batch; the mirrored pass sees the mirrored light, u → 1 − u).
 
 A model folder holds up to two: `refiner.safetensors` (config.json's "refiner" entry) and
 `relit_refiner.safetensors` ("relit_refiner"), each correcting its clips from the same frames. The

@@ -432,6 +432,8 @@ def test_a_relit_gain_refiner_multiplies_its_base_by_a_smooth_field_and_draws_no
     black = torch.full_like(base, -1.0)
     near_one, _ = refiner.corrected(torch.full_like(delta, 0.05), black, albedo)
     assert (near_one + 1).max() < 0.005
+    flat, _ = refiner.corrected(torch.full_like(delta, 0.3), torch.full_like(base, 0.1), albedo)
+    torch.testing.assert_close(flat, torch.full_like(base, (1.1 + 0.04) * float(np.exp(0.3)) - 0.04 - 1))
     # The training loss sees the same correction unclamped; Relighter's result is clamped to [-1, 1].
     bright, _ = refiner.corrected(torch.full_like(delta, 2.0), base, albedo)
     assert bright.max() == 1.0

@@ -1,26 +1,24 @@
-# From the repo root: PYTHONPATH=. python runs/relit-xl/valprobe.py (output: valprobe.txt)
-# per target-probe gain of the shipped relit refiner on the validation pack
-import json, collections, torch, numpy as np
+# From the repo root: PYTHONPATH=. python runs/relit-xl/valprobe.py [MODEL] (default models/default; output: valprobe.txt)
+# per target-probe gain of a model's relit refiner over the offset filter's frames on the validation pack
+import json, collections, sys, torch, numpy as np
 from pathlib import Path
-from relight_core.checkpoint import load_model
-from relight_core.refiner import Refiner, RefinerConfig
-from safetensors.torch import load_file
+from relight_core.checkpoint import load_model, load_refiner
 from relight_core.training.pack import load_packs
 from relight_core.training.refine import unseen_items, cached_outputs, item_tensors, model_inputs, _hwc
 from relight_core.evaluation.metrics import protocol_psnr
 torch.set_num_threads(1)
 C = Path.home() / ".cache/unirelight-studio"
-spec, _, _ = load_model(Path("models/default"), "cpu")
-config = RefinerConfig(widths=(24, 48, 96, 128, 256), blocks=1, base="filtered", clips=("relit",), flip_average=True, lighting=True, relit_gain=4)
+model = Path(sys.argv[1] if len(sys.argv) > 1 else "models/default")
+spec, _, _ = load_model(model, "cpu")
+r = load_refiner(spec, model, "cpu", slot="relit_refiner")
 vp = load_packs(C / "s5/val.npz"); names = list(vp["names"])
 items = unseen_items(vp["names"], [], None, 0)
-out = cached_outputs(C / "refine/relit-G4big/outputs-val.npz", Path("models/default"), vp, items)
-data = item_tensors(vp, items, out, spec, "filtered")
-r = Refiner(config).eval(); r.load_state_dict({k: v.float() for k, v in load_file("models/default/relit_refiner.safetensors").items()})
+out = cached_outputs(C / "refine/relit-G4big/outputs-val.npz", model, vp, items)   # the DiT's, the same for every refiner
+data = item_tensors(vp, items, out, spec, r.config.base)
 rel = []
 with torch.no_grad():
     for s in range(0, len(items), 32):
-        x, rr, a, get = model_inputs(data, slice(s, s + 32), "filtered")
+        x, rr, a, get = model_inputs(data, slice(s, s + 32), r.config.base)
         d = r.correction(x, get("env")).float(); rr2, _ = r.corrected(d, rr, a); rel.append((rr2 + 1) / 2)
 rel = torch.cat(rel).permute(0, 2, 3, 1).numpy()
 base = _hwc(data["f_relit"]); tgt = _hwc(data["target"]); m = data["mask"].numpy(); inp = _hwc(data["input"])
