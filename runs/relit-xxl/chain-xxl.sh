@@ -1,6 +1,7 @@
 #!/bin/bash
+# Ran from ~/.cache/unirelight-studio/refine (nohup ./chain-xxl.sh > relit-G4xxl-run.log); REPO is the repository root
 C=~/.cache/unirelight-studio
-cd /work/main
+cd "${REPO:-/work/main}"
 while pgrep -f "outputs.py shard" >/dev/null; do sleep 10; done
 PYTHONPATH=. .venv/bin/python runs/relit-xxl/outputs.py merge 2 || exit 1
 cp $C/refine/relit-G4xl/checkpoint.pt $C/refine/relit-G4xl/outputs-val.npz $C/refine/relit-G4xl/best.json $C/refine/relit-G4xl/refiner.safetensors $C/refine/relit-G4xxl/

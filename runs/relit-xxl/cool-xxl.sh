@@ -1,7 +1,8 @@
 #!/bin/bash
+# Ran from ~/.cache/unirelight-studio/refine (nohup ./cool-xxl.sh > relit-G4xxl-cool.log); REPO is the repository root
 # at the first validation past 98 min: stop the lr-3e-4 run once its checkpoint is written, resume at lr 1e-4 to 115 min
 C=~/.cache/unirelight-studio; D=$C/refine/relit-G4xxl
-cd /work/main
+cd "${REPO:-/work/main}"
 while true; do
   m=$(tail -n 1 $D/log.jsonl | python3 -c 'import json,sys; print(json.loads(sys.stdin.read())["minutes"])')
   if python3 -c "import sys; sys.exit(0 if $m >= 98 else 1)" && [ $D/checkpoint.pt -nt $D/log.jsonl ]; then break; fi
