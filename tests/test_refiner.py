@@ -438,3 +438,27 @@ def test_a_relit_gain_refiner_multiplies_its_base_by_a_smooth_field_and_draws_no
     bright, _ = refiner.corrected(torch.full_like(delta, 2.0), base, albedo)
     assert bright.max() == 1.0
 
+
+
+def test_cached_outputs_reuses_the_items_a_file_holds_by_name_direction_and_same(tmp_path):
+    """The DiT's outputs are kept by (scene name, target light, same): a file written for other items gives
+    back the frames of those it holds, in the new order, and names the rows it lacks."""
+    frames = np.arange(4 * 3 * 2 * 2, dtype=np.uint8).reshape(4, 3, 2, 2)
+    path = tmp_path / "outputs.npz"
+    np.savez(path, names=np.array(["a", "a", "b", "b"]), targets=np.array([0, 1, 0, 0]),
+             same=np.array([0, 0, 0, 1], dtype=np.int64), relit=frames, albedo=frames + 100)
+    pack = {"names": np.array(["b", "a", "c"])}
+    items = [(0, 0, 1), (1, 1, 0), (2, 0, 0), (0, 0, 0)]    # b same, a→1, c (not held), b→0
+    rows = refine.held_rows(path, *refine.item_keys(pack, items))
+    assert rows == [3, 1, None, 2]
+    out = refine.held_frames(path, rows)
+    np.testing.assert_array_equal(out["relit"][[0, 1, 3]], frames[[3, 1, 2]])
+    np.testing.assert_array_equal(out["albedo"][[0, 1, 3]], frames[[3, 1, 2]] + 100)
+    assert refine.held_frames(path, [None, None]) is None
+    # Every item held, in another order: nothing is computed (there is no model), the file is rewritten in
+    # the items' order and the next call reads it back as it is.
+    held = [(1, 0, 0), (0, 0, 1)]
+    first = refine.cached_outputs(path, tmp_path / "no-model", pack, held, log=lambda m: None)
+    np.testing.assert_array_equal(first["relit"], frames[[0, 3]])
+    again = refine.cached_outputs(path, tmp_path / "no-model", pack, held, log=lambda m: pytest.fail(m))
+    np.testing.assert_array_equal(again["albedo"], frames[[0, 3]] + 100)

@@ -107,26 +107,46 @@ def dit_outputs(model: Path, pack: dict, items: list[tuple[int, int, int]], batc
     return {"relit": np.concatenate(relit), "albedo": np.concatenate(albedo)}
 
 
+def item_keys(pack: dict, items: list[tuple[int, int, int]]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """What an outputs file names its items by: scene names, target lights and same (int64)."""
+    return (np.array([str(pack["names"][s]) for s, _, _ in items]), np.array([t for _, t, _ in items]),
+            np.array([k for _, _, k in items], dtype=np.int64))
+
+
+def held_rows(path: Path, names: np.ndarray, targets: np.ndarray, same: np.ndarray) -> list[int | None]:
+    """For each item (`item_keys`), its row in the outputs file `path`, or None where the file lacks it."""
+    with np.load(path, allow_pickle=False) as z:
+        held = z["same"] if "same" in z.files else np.zeros(len(z["names"]), np.int64)   # older files: none
+        where = {(str(n), int(t), int(k)): i for i, (n, t, k) in enumerate(zip(z["names"], z["targets"], held))}
+    return [where.get((str(n), int(t), int(k))) for n, t, k in zip(names, targets, same)]
+
+
+def held_frames(path: Path, rows: list[int | None]) -> dict[str, np.ndarray] | None:
+    """uint8 relit and albedo frames for the items `rows` (`held_rows`) points to, read from `path`; the
+    rows of the items it lacks are left to fill. None when it holds none of them."""
+    hits = [i for i, r in enumerate(rows) if r is not None]
+    if not hits:
+        return None
+    with np.load(path, allow_pickle=False) as z:
+        out = {k: np.empty((len(rows), *z[k].shape[1:]), np.uint8) for k in ("relit", "albedo")}
+        for key, frames in out.items():
+            frames[hits] = z[key][[rows[i] for i in hits]]
+    return out
+
+
 def cached_outputs(path: Path, model: Path, pack: dict, items: list[tuple[int, int, int]], log=print) -> dict:
     """`dit_outputs` for `items`, kept in `path`: the items it holds already (by scene name, direction and
     same) are read from it, only the others are computed, and the file is rewritten with all of them in order."""
-    names = np.array([str(pack["names"][s]) for s, _, _ in items])
-    targets = np.array([t for _, t, _ in items])
-    same = np.array([k for _, _, k in items], dtype=np.int64)
+    names, targets, same = item_keys(pack, items)
     out, missing = None, list(range(len(items)))
     if path.is_file():
         with np.load(path, allow_pickle=False) as z:
             held = z["same"] if "same" in z.files else np.zeros(len(z["names"]), np.int64)   # older files: none
             if np.array_equal(z["names"], names) and np.array_equal(z["targets"], targets) and np.array_equal(held, same):
                 return {"relit": z["relit"], "albedo": z["albedo"]}
-            where = {(str(n), int(t), int(k)): i for i, (n, t, k) in enumerate(zip(z["names"], z["targets"], held))}
-            rows = [where.get((n, int(t), int(k))) for n, t, k in zip(names, targets, same)]
-            missing = [i for i, r in enumerate(rows) if r is None]
-            hits = [i for i, r in enumerate(rows) if r is not None]
-            if hits:
-                out = {k: np.empty((len(items), *z[k].shape[1:]), np.uint8) for k in ("relit", "albedo")}
-                for key, frames in out.items():
-                    frames[hits] = z[key][[rows[i] for i in hits]]
+        rows = held_rows(path, names, targets, same)
+        missing = [i for i, r in enumerate(rows) if r is None]
+        out = held_frames(path, rows)
         log(f"{path} holds {len(items) - len(missing)} of these {len(items)} items; computing the other {len(missing)}")
     if missing:
         fresh = dit_outputs(model, pack, [items[i] for i in missing], log=log)
