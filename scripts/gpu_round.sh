@@ -5,6 +5,7 @@
 # and their mean with $INIT — as a model folder and ≤ 15 MB shards in $OUT, with the runs' logs.
 #   PACKS="/tmp/packs/*.npz" VAL=.dev/last/val.npz TEST=.dev/last/test.npz INIT=.dev/last/init \
 #     bash scripts/gpu_round.sh 8.2
+# COMPILE=1 adds --compile (torch.compile; a compiler failure falls back to eager).
 # Packs too large for one call travel in pieces (python -m relight_core.training.pieces; docs/TRAINING.md).
 set -uo pipefail
 cd "$(dirname "$0")/.."
@@ -27,7 +28,7 @@ for lr in ${LRS:-2e-4 1e-4}; do
     --device "${DEVICE:-cuda}" --minutes "$minutes" --batch "${BATCH:-128}" --lr "$lr" --seed "$seed" --warmup 100 \
     --ema-decay 0.999 --init "$init" --residual --p-sigma-max 0.9 --albedo-weight 0.5 --mix-lights 0.5 \
     --eval-steps 1 --eval-items 32 --val-items 128 --val-every-minutes 0.5 --export-every-minutes 1000 \
-    --checkpoint-every-minutes 1000 --log-every 50 --out "$runs/lr-$lr" > "$out/log-lr-$lr.txt" 2>&1 &
+    --checkpoint-every-minutes 1000 --log-every 50 ${COMPILE:+--compile} --out "$runs/lr-$lr" > "$out/log-lr-$lr.txt" 2>&1 &
   models+=("$runs/lr-$lr/model")
   seed=$((seed + 1))
 done

@@ -185,12 +185,36 @@ def test_a_refiner_grown_by_a_level_gives_the_same_output_and_then_trains_its_ne
         grown.up[2].weight[:, :16] += 1e-3
     grown(x).square().mean().backward()
     assert all(torch.isfinite(p.grad).all() and p.grad.abs().sum() > 0 for p in grown.mid.parameters())
-    # Two levels more, another base or another block count is one sentence.
+    # Two levels more, another base, a level and a block more, or fewer blocks is one sentence.
     for config in (RefinerConfig(widths=(4, 8, 12, 16, 16), blocks=blocks, base="filtered"),
                    RefinerConfig(widths=(4, 8, 12, 16), blocks=blocks, base="raw"),
-                   RefinerConfig(widths=(4, 8, 12, 16), blocks=blocks + 1, base="filtered")):
-        with pytest.raises(ValueError, match="nor one with a level fewer"):
+                   RefinerConfig(widths=(4, 8, 12, 16), blocks=blocks + 1, base="filtered"),
+                   RefinerConfig(widths=(4, 8, 12), blocks=blocks - 1, base="filtered")):
+        with pytest.raises(ValueError, match="nor one with a level fewer or fewer blocks"):
             refine.initial_weights(Refiner(config), tmp_path / "small.safetensors")
+
+
+@pytest.mark.parametrize("lighting", [False, True])
+def test_a_refiner_deepened_by_blocks_gives_the_same_output_and_then_trains_its_new_blocks(tmp_path, lighting):
+    torch.manual_seed(3)
+    config = dict(widths=(4, 8, 12), base="filtered", lighting=lighting)
+    small = Refiner(RefinerConfig(blocks=1, **config))
+    for parameter in small.parameters():          # a trained-looking refiner: every weight counts
+        torch.nn.init.normal_(parameter, std=0.2)
+    save_file({k: v.contiguous() for k, v in small.state_dict().items()}, tmp_path / "small.safetensors")
+    deep = Refiner(RefinerConfig(blocks=3, **config))
+    assert refine.initial_weights(deep, tmp_path / "small.safetensors").startswith("deepened to 3 residual blocks")
+    assert len(deep.enc[0]) == 3 and len(deep.mid) == 6
+    x = torch.randn(2, 15, 40, 36)
+    light = torch.randn(2, 192) if lighting else None
+    with torch.no_grad():
+        assert torch.allclose(deep(x, light), small(x, light), atol=1e-5)
+    # The trained blocks keep their place and weights; every new block's last convolution has a gradient.
+    assert torch.equal(deep.enc[1][0].conv1.weight, small.enc[1][0].conv1.weight)
+    assert torch.equal(deep.mid[1].conv2.weight, small.mid[1].conv2.weight)
+    deep(x, light).square().mean().backward()
+    for new in (deep.enc[0][1], deep.enc[1][2], deep.dec[0][1], deep.mid[2], deep.mid[5]):
+        assert new.conv2.weight.abs().sum() == 0 and new.conv2.weight.grad.abs().sum() > 0
 
 
 def test_refine_trains_on_unseen_scenes_resumes_and_writes_a_model_the_relighter_runs(tmp_path, capsys):

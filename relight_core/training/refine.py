@@ -22,7 +22,8 @@
    at every validation; the same command resumes from it exactly and stops when `--minutes` are used
    (a different `--lr` or `--clips` applies from there). `--init refiner.safetensors` starts a new run
    folder from a refiner trained before (weights and EMA; a new optimiser and step count): one of the
-   same shape, or one with a level fewer, grown into this shape with the same output (`grown_state`);
+   same shape, or one with a level fewer, grown into this shape with the same output (`grown_state`),
+   or one with fewer residual blocks a level, deepened likewise (`deepened_state`);
    one without the light into one with `--lighting` (its FiLM starts at zero); `--zero-head` starts
    the corrected clips' correction at zero (from a refiner trained for the other clip).
 4. **The light.** With `--lighting` the refiner sees the target's camera-frame probe (the pack's
@@ -404,9 +405,15 @@ def initial_weights(refiner: Refiner, path: Path) -> str:
     try:
         refiner.load_state_dict(grown_state(state, refiner))
         return f"grown by a level ({refiner.config.widths[-1]} channels at 1/{2 ** (len(refiner.config.widths) - 1)} size){lit}"
+    except (RuntimeError, KeyError, ValueError):
+        pass
+    try:
+        refiner.load_state_dict(deepened_state(state, refiner))
+        return f"deepened to {refiner.config.blocks} residual blocks a level{lit}"
     except (RuntimeError, KeyError, ValueError) as exc:
-        raise ValueError(f"--init {path} is not a refiner of this shape nor one with a level fewer; give the "
-                         "--widths, --blocks and --base it was trained with (or those plus one more width)") from exc
+        raise ValueError(f"--init {path} is not a refiner of this shape nor one with a level fewer or fewer blocks; "
+                         "give the --widths, --blocks and --base it was trained with (or those plus one more width, "
+                         "or more --blocks)") from exc
 
 
 def grown_state(state: dict[str, torch.Tensor], refiner: Refiner) -> dict[str, torch.Tensor]:
@@ -439,6 +446,36 @@ def grown_state(state: dict[str, torch.Tensor], refiner: Refiner) -> dict[str, t
     return grown
 
 
+def deepened_state(state: dict[str, torch.Tensor], refiner: Refiner) -> dict[str, torch.Tensor]:
+    """The weights of a refiner with fewer residual blocks a level than `refiner` (the same widths and base),
+    deepened into `refiner`'s shape so that its output is unchanged: each level keeps its trained blocks
+    first, and the new ones after them start with their second convolution at zero — a residual block
+    whose last convolution is zero passes its input through (`_Block`), and its first one, fresh, gives
+    that zero convolution a gradient from the first step."""
+    fresh = refiner.state_dict()
+
+    def block(key: str) -> int | None:
+        """The block index of a residual block's weight (counted over the middle's two halves), else None."""
+        head, _, rest = key.partition(".")
+        parts = rest.split(".")
+        return int(parts[1]) if head in ("enc", "dec") else int(parts[0]) if head == "mid" else None
+
+    old = max((block(key) + 1 for key in state if key.startswith(("enc.", "dec."))), default=0)
+    if old >= refiner.config.blocks or any(block(key) is None and key not in state for key in fresh):
+        raise ValueError("not a refiner with fewer blocks")
+    deepened = dict(fresh)
+    for key, value in state.items():
+        if key not in fresh or fresh[key].shape != value.shape:
+            raise ValueError(f"not a refiner with fewer blocks of this shape ({key})")
+        deepened[key] = value
+    for key in fresh:
+        index = block(key)
+        if (index is not None and index >= (2 * old if key.startswith("mid.") else old)
+                and key.endswith(("conv2.weight", "conv2.bias"))):
+            deepened[key] = torch.zeros_like(fresh[key])
+    return deepened
+
+
 def write_model(model: Path, run: Path, folder: Path, best: dict, slot: str = "refiner") -> Path:
     """A model folder: `model`'s DiT, config.json and refiners with the run's refiner added in `slot`
     ("refiner" or "relit_refiner", `REFINER_SLOTS`; a refiner `model` has in the other slot stays)."""
@@ -466,7 +503,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, required=True)
     parser.add_argument("--model-dir", type=Path, help="also write a model folder with the refiner here")
     parser.add_argument("--init", type=Path, help="a new run starts from this refiner.safetensors, of this shape "
-                        "or with a level fewer (a run that resumes from its checkpoint ignores it)")
+                        "or with a level or some blocks fewer (a run that resumes from its checkpoint ignores it)")
     parser.add_argument("--minutes", type=float, default=30.0)
     parser.add_argument("--lr", type=float, default=1.5e-3)
     parser.add_argument("--batch", type=int, default=16)
