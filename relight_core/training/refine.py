@@ -114,11 +114,16 @@ def item_keys(pack: dict, items: list[tuple[int, int, int]]) -> tuple[np.ndarray
             np.array([k for _, _, k in items], dtype=np.int64))
 
 
+def file_keys(z) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """`item_keys` of the items an open outputs file (np.load) holds; files written before `same` existed hold none."""
+    same = z["same"] if "same" in z.files else np.zeros(len(z["names"]), np.int64)
+    return z["names"], z["targets"], same
+
+
 def held_rows(path: Path, names: np.ndarray, targets: np.ndarray, same: np.ndarray) -> list[int | None]:
     """For each item (`item_keys`), its row in the outputs file `path`, or None where the file lacks it."""
     with np.load(path, allow_pickle=False) as z:
-        held = z["same"] if "same" in z.files else np.zeros(len(z["names"]), np.int64)   # older files: none
-        where = {(str(n), int(t), int(k)): i for i, (n, t, k) in enumerate(zip(z["names"], z["targets"], held))}
+        where = {(str(n), int(t), int(k)): i for i, (n, t, k) in enumerate(zip(*file_keys(z)))}
     return [where.get((str(n), int(t), int(k))) for n, t, k in zip(names, targets, same)]
 
 
@@ -142,8 +147,7 @@ def cached_outputs(path: Path, model: Path, pack: dict, items: list[tuple[int, i
     out, missing = None, list(range(len(items)))
     if path.is_file():
         with np.load(path, allow_pickle=False) as z:
-            held = z["same"] if "same" in z.files else np.zeros(len(z["names"]), np.int64)   # older files: none
-            if np.array_equal(z["names"], names) and np.array_equal(z["targets"], targets) and np.array_equal(held, same):
+            if all(np.array_equal(a, b) for a, b in zip(file_keys(z), (names, targets, same))):
                 return {"relit": z["relit"], "albedo": z["albedo"]}
         rows = held_rows(path, names, targets, same)
         missing = [i for i, r in enumerate(rows) if r is None]

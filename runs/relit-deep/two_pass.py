@@ -4,15 +4,17 @@ and pass 2 with the true albedo (the oracle). PSNR after a per-channel scale fit
 Ran from the repo root: .venv/bin/python runs/relit-deep/two_pass.py THREADS [ITEMS]  (output: two-pass-128.txt)"""
 import sys, torch
 from functools import partial
-sys.path.insert(0, '/work/main')
+from pathlib import Path
+REPO = Path(__file__).resolve().parents[2]
+sys.path.insert(0, str(REPO))
 from relight_core.training.fast import make_batch, network
 from relight_core.training.pack import load_pack
 from relight_core.pipeline import Relighter
 from relight_core.diffusion import ConditionedDenoiser, EDMPrecond, get_sigmas_karras, sample_res2ab
 torch.set_num_threads(int(sys.argv[1]) if len(sys.argv) > 1 else 1)
-R = Relighter.load('/work/main/models/default', device='cpu', precision='fp32')
+R = Relighter.load(str(REPO / 'models/default'), device='cpu', precision='fp32')
 dit, tok = R.dit, R.tokenizer
-pack = load_pack('/root/.cache/unirelight-studio/s5/val.npz')
+pack = load_pack(Path.home() / '.cache/unirelight-studio/s5/val.npz')
 GAIN_A = R.spec.residual_gain[1]
 print('gains', R.spec.residual_gain)
 n = int(sys.argv[2]) if len(sys.argv) > 2 else len(pack['rgb'])
