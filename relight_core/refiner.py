@@ -57,6 +57,10 @@ class RefinerConfig:
                                                   # on the relit base, averaged over k×k-pixel cells and
                                                   # smoothly interpolated (`corrected`): it can brighten,
                                                   # darken and tint, but draws no edge the base lacks
+    strength: float = 1.0                         # scales its corrections (the log gain with relit_gain):
+                                                  # chosen on held-out scenes by `training.calibrate
+                                                  # --strengths`, where a correction learnt on training
+                                                  # scenes can overshoot; training always uses 1
 
     @classmethod
     def from_dict(cls, data: dict) -> "RefinerConfig":
@@ -65,6 +69,7 @@ class RefinerConfig:
         flip_average = data.get("flip_average", cls.flip_average)
         lighting = data.get("lighting", cls.lighting)
         relit_gain = data.get("relit_gain", cls.relit_gain)
+        strength = data.get("strength", cls.strength)
 
         def whole(v, low, high):
             return isinstance(v, int) and not isinstance(v, bool) and low <= v <= high
@@ -73,13 +78,15 @@ class RefinerConfig:
                 or not all(whole(w, 1, 1024) for w in widths) or not whole(blocks, 0, 8)
                 or base not in ("raw", "filtered") or not isinstance(clips, (list, tuple))
                 or not clips or not set(clips) <= {"relit", "albedo"} or not isinstance(flip_average, bool)
-                or not isinstance(lighting, bool) or not whole(relit_gain, 0, 64)):
+                or not isinstance(lighting, bool) or not whole(relit_gain, 0, 64)
+                or isinstance(strength, bool) or not isinstance(strength, (int, float))
+                or not 0 <= strength <= 2):
             raise ValueError(f"a refiner takes 1–6 widths from 1 to 1024, 0–8 blocks, base raw or filtered, "
-                             f"clips relit and/or albedo, flip_average and lighting true or false and a "
-                             f"relit_gain cell of 0–64 pixels; got {data!r}")
+                             f"clips relit and/or albedo, flip_average and lighting true or false, a "
+                             f"relit_gain cell of 0–64 pixels and a strength from 0 to 2; got {data!r}")
         return cls(widths=tuple(widths), blocks=blocks, base=base,
                    clips=tuple(c for c in ("relit", "albedo") if c in clips), flip_average=flip_average,
-                   lighting=lighting, relit_gain=relit_gain)
+                   lighting=lighting, relit_gain=relit_gain, strength=float(strength))
 
     def to_dict(self) -> dict:
         out = {"widths": list(self.widths), "blocks": self.blocks, "base": self.base, "clips": list(self.clips)}
@@ -89,13 +96,15 @@ class RefinerConfig:
             out["lighting"] = True
         if self.relit_gain:
             out["relit_gain"] = self.relit_gain
+        if self.strength != 1.0:
+            out["strength"] = self.strength
         return out
 
     @property
     def shape(self) -> tuple:
-        """What its weights depend on (widths, blocks, base, lighting); `clips`, `flip_average` and
-        `relit_gain` only change how they are used, so a run may resume or start from weights with other
-        ones."""
+        """What its weights depend on (widths, blocks, base, lighting); `clips`, `flip_average`,
+        `relit_gain` and `strength` only change how they are used, so a run may resume or start from
+        weights with other ones."""
         return self.widths, self.blocks, self.base, self.lighting
 
     @property
@@ -223,10 +232,14 @@ class Refiner(nn.Module):
         """The base frames (relit, albedo) [B,3,H,W] in [-1, 1] with the corrections `delta` [B,6,H,W] applied
         to the clips it corrects (the others come back as they were): added, or with `relit_gain` the relit
         one as a smooth gain, (relit + ε)·exp(g) − ε in [0, 1] display values (ε = 0.02), g the correction
-        averaged over relit_gain-pixel cells and bilinearly interpolated back. The one place this is done,
-        for training (`clamp` False: the loss sees values past [-1, 1]) and for use."""
+        averaged over relit_gain-pixel cells and bilinearly interpolated back; both scaled by `strength`
+        (the gain raised to it). The one place this is done, for training (`clamp` False: the loss sees
+        values past [-1, 1]) and for use."""
         def bounded(x: torch.Tensor) -> torch.Tensor:
             return x.clamp(-1, 1) if clamp else x
+
+        if self.config.strength != 1.0:
+            delta = delta * self.config.strength
 
         if "relit" in self.config.clips:
             if self.config.relit_gain:

@@ -486,3 +486,51 @@ def test_cached_outputs_reuses_the_items_a_file_holds_by_name_direction_and_same
     np.testing.assert_array_equal(first["relit"], frames[[0, 3]])
     again = refine.cached_outputs(path, tmp_path / "no-model", pack, held, log=lambda m: pytest.fail(m))
     np.testing.assert_array_equal(again["albedo"], frames[[0, 3]] + 100)
+
+
+def test_a_refiners_strength_scales_its_correction_and_calibrate_picks_it_per_refiner_by_the_clips_it_supplies():
+    torch.manual_seed(8)
+    config = RefinerConfig(widths=(4, 8), blocks=1, base="filtered", clips=("relit", "albedo"), relit_gain=8)
+    assert "strength" not in config.to_dict()                        # 1, as trained: configs before it read alike
+    half = replace(config, strength=0.5)
+    assert RefinerConfig.from_dict(half.to_dict()) == half and half.to_dict()["strength"] == 0.5
+    assert half.shape == config.shape                                # the same weights, used more gently
+    for bad in (-0.1, 2.5, True, "1"):
+        with pytest.raises(ValueError, match="strength"):
+            RefinerConfig.from_dict({**config.to_dict(), "strength": bad})
+    base, albedo = torch.rand(1, 3, 32, 32) * 1.6 - 0.8, torch.rand(1, 3, 32, 32) * 1.6 - 0.8
+    delta = torch.randn(1, 6, 4, 4).repeat_interleave(8, -2).repeat_interleave(8, -1) * 0.3
+    full_relit, full_albedo = Refiner(config).corrected(delta, base, albedo, clamp=False)
+    half_relit, half_albedo = Refiner(half).corrected(delta, base, albedo, clamp=False)
+    # the relit gain raised to the strength (the log gain scaled), the added albedo correction scaled
+    eps = 2 * 0.02
+    torch.testing.assert_close((half_relit + 1 + eps) ** 2, (full_relit + 1 + eps) * (base + 1 + eps))
+    torch.testing.assert_close(half_albedo, albedo + 0.5 * (full_albedo - albedo))
+    off_relit, off_albedo = Refiner(replace(config, strength=0.0)).corrected(delta, base, albedo)
+    torch.testing.assert_close(off_relit, base)
+    torch.testing.assert_close(off_albedo, albedo)
+    # calibrate: each refiner is scored on the clips whose result it supplies (the relit refiner's relit
+    # wins where both correct it) and keeps strength 1 unless another gains STRENGTH_MIN_GAIN over it.
+    from relight_core.training import calibrate
+
+    spec, dit, tok = residual_model()
+    both = Relighter(spec, dit, tok, refiner=Refiner(config), relit_refiner=Refiner(replace(config, clips=("relit",))))
+    assert calibrate.refiner_owners(both) == {"relit_refiner": ["relit"], "refiner": ["albedo"]}
+    assert calibrate.refiner_owners(Relighter(spec, dit, tok, refiner=Refiner(config))) == {"refiner": ["relit", "albedo"]}
+    table = {0.5: {"relit": 21.0, "albedo": 20.0}, 0.8: {"relit": 22.0, "albedo": 20.01}, 1.0: {"relit": 21.5, "albedo": 20.0}}
+    assert calibrate.best_strengths(table, {"relit_refiner": ["relit"], "refiner": ["albedo"]}) == \
+        {"relit_refiner": 0.8, "refiner": 1.0}                        # albedo's +0.01 dB is noise: stays 1
+    assert calibrate.best_strengths(table, {"refiner": ["relit", "albedo"]}) == {"refiner": 0.8}
+    # measured through the Relighter: strength 0 gives the model without that refiner, and the
+    # refiners' own configs come back as they were
+    frames = np.random.default_rng(3).random((2, 32, 32, 3)).astype(np.float32)
+    probe = np.ones((16, 32, 3), np.float32)
+    item = type("Item", (), {"input": frames, "probe": probe, "target": frames[::-1].copy(),
+                             "albedo": frames * 0.5, "mask": np.ones((2, 32, 32), bool)})()
+    with torch.no_grad():
+        torch.nn.init.normal_(both.refiner.head.weight, std=0.1)
+        torch.nn.init.normal_(both.relit_refiner.head.weight, std=0.1)
+    measured = calibrate.measure_strengths(both, [item], grid=(0.0, 1.0))
+    plain = calibrate.measure_strengths(Relighter(spec, dit, tok), [item], grid=(1.0,))[1.0]
+    assert measured[0.0] == pytest.approx(plain, abs=1e-4) and measured[1.0] != pytest.approx(plain, abs=1e-3)
+    assert both.refiner.config.strength == both.relit_refiner.config.strength == 1.0
