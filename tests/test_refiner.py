@@ -325,6 +325,11 @@ def test_refine_trains_on_unseen_scenes_resumes_and_writes_a_model_the_relighter
     with pytest.raises(SystemExit):
         refine.main([*args[:1], str(tmp_path), *args[2:]])
     assert f"--model {tmp_path} holds no dit.safetensors" in capsys.readouterr().err
+    # Two renders' packs name their scenes alike (scene_000000, ...); the DiT's outputs are kept by name, so
+    # training on both at once is refused in one sentence rather than reading one scene's outputs for another.
+    with pytest.raises(SystemExit):
+        refine.main([*args[:3], str(tmp_path / "p.npz"), *args[3:]])
+    assert "the --pack files hold scenes of the same name" in capsys.readouterr().err
 
 
 def test_light_features_keep_the_lights_shape_and_colour_not_its_scale():

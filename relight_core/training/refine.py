@@ -274,6 +274,9 @@ def train(args: argparse.Namespace, log=print) -> dict:
     config = RefinerConfig(widths=tuple(args.widths), blocks=args.blocks, base=args.base, clips=tuple(args.clips),
                            flip_average=args.flip_average, lighting=args.lighting, relit_gain=args.relit_gain)
     pack = load_packs(args.pack)
+    if len(set(map(str, pack["names"]))) < len(pack["names"]):
+        raise ValueError("the --pack files hold scenes of the same name (two render-data runs' scene_000000, say), "
+                         "and the DiT's outputs are kept by name; train on one render's packs at a time")
     items = unseen_items(pack["names"], [*args.seen, args.val_pack], args.scenes, args.same_scenes)
     if not items:
         raise ValueError("no scene of the packs is left once the --seen packs' scenes are taken out")
