@@ -101,8 +101,8 @@ class ModelSpec:
                     raise InputError(f"The model's config.json has {slot} {kwargs[slot]!r}; it takes "
                                      '"widths" (1 to 6 whole numbers from 1 to 1024), "blocks" (0 to 8), "base" '
                                      '("raw" or "filtered"), "clips" (["relit", "albedo"] or one of them), '
-                                     '"flip_average" and "lighting" (true or false) and "relit_gain" (a cell of 0 to 64 '
-                                     'pixels), or leave it out.') from None
+                                     '"flip_average" and "lighting" (true or false), "relit_gain" (a cell of 0 to 64 '
+                                     'pixels) and "strength" (0 to 2), or leave it out.') from None
         return cls(**kwargs)
 
 

@@ -253,7 +253,7 @@ def test_a_residual_models_offset_filter_smooths_what_it_changed_and_scales_with
                                   Relighter(spec, dit, tok).relight(render).relit)
 
 
-def test_a_zero_head_residual_model_returns_its_input_and_training_resumes(tmp_path):
+def test_a_zero_head_residual_model_returns_its_input_and_training_resumes(tmp_path, capsys):
     root = write_pack_dataset(tmp_path / "data")
     write_pack(root, "train", tmp_path / "p.npz", lighting_size=8)
     base = dict(pack=tmp_path / "p.npz", device="cpu", batch=2, width=32, depth=1, num_heads=2, log_every=1,
@@ -289,6 +289,9 @@ def test_a_zero_head_residual_model_returns_its_input_and_training_resumes(tmp_p
     np.testing.assert_allclose(result.relit, frames, atol=1e-5)
     assert set(written["notes"]["calibration"]["table"]["0.5"]) == {str(r) for r in calibrate.RADII}
     assert tuple(written["offset_filter"]) == load_model(model)[0].offset_filter
+    with pytest.raises(SystemExit):       # no refiner: no strength to fit, said in one sentence
+        calibrate.main(["--model", str(model), "--data", str(data), "--split", "train", "--items", "2", "--strengths"])
+    assert "has no refiner; --strengths fits refiners' strengths" in capsys.readouterr().err
     assert calibrate.best_gains({(0.5, 0): {"relit": 20.0, "albedo": 18.0}, (1.0, 0): {"relit": 19.0, "albedo": 19.0},
                                  (0.5, 4): {"relit": 20.5, "albedo": 17.0}, (1.0, 4): {"relit": 20.5, "albedo": 19.0}}) \
         == ((0.5, 4), (1.0, 0))   # best each; a tie goes to the smaller gain, then the smaller radius

@@ -112,8 +112,8 @@ def test_a_refiner_in_config_json_round_trips_and_a_bad_one_or_a_missing_file_is
     assert ModelSpec.from_json(json.loads(json.dumps(data))).refiner == SMALL.to_dict()
     assert RefinerConfig.from_dict({"clips": ["albedo"]}).clips == ("albedo",)
     for bad in ({"widths": []}, {"widths": [8, -1]}, {"widths": [8], "blocks": 2.5}, {"base": "sharp"}, "wide", {"clips": []}, {"clips": ["shadows"]}, {"clips": [["relit"]]},
-                {"widths": [10 ** 6]}, {"relit_gain": -4}, {"relit_gain": 2.5}):
-        with pytest.raises(InputError, match='has refiner .*; it takes "widths".*"relit_gain"'):
+                {"widths": [10 ** 6]}, {"relit_gain": -4}, {"relit_gain": 2.5}, {"strength": 3}):
+        with pytest.raises(InputError, match='has refiner .*; it takes "widths".*"relit_gain".*"strength"'):
             ModelSpec.from_json({**data, "refiner": bad})
     folder = tmp_path / "model"
     folder.mkdir()
@@ -316,6 +316,20 @@ def test_refine_trains_on_unseen_scenes_resumes_and_writes_a_model_the_relighter
     assert both.relit_refiner.config.relit_gain == 4 and both.refiner.config.relit_gain == 0
     twice = both.relight(RelightRequest(frames=frames, probe=np.ones((16, 32, 3), np.float32)))
     np.testing.assert_allclose(twice.albedo, result.albedo, atol=2e-3)     # the albedo refiner is the one copied
+    # calibrate --strengths --write fits both refiners' strengths on items and stores them (1: no key).
+    from relight_core.training import calibrate
+
+    assert calibrate.main(["--model", str(tmp_path / "refined3"), "--data", str(root), "--split", "train",
+                           "--items", "2", "--strengths", "--write"]) == 0
+    fitted = json.loads((tmp_path / "refined3" / "config.json").read_text())
+    table = fitted["notes"]["strength_calibration"]["table"]
+    assert set(table) == {str(s) for s in calibrate.STRENGTHS}
+    assert fitted["notes"]["strength_calibration"]["owners"] == {"relit_refiner": ["relit"], "refiner": ["albedo"]}
+    for slot, clip in (("relit_refiner", "relit"), ("refiner", "albedo")):
+        chosen = fitted[slot].get("strength", 1.0)
+        assert chosen in calibrate.STRENGTHS and (chosen != 1.0) == ("strength" in fitted[slot])
+        assert table[str(chosen)][clip] >= table["1.0"][clip]
+        assert getattr(Relighter.load(str(tmp_path / "refined3")), slot).config.strength == chosen
     # A second shape on the same run folder is refused in one sentence, as is a model that is not a pixel model.
     with pytest.raises(SystemExit):
         refine.main([*args[:args.index("--widths")], "--widths", "4", "8", "8", "--minutes", "0.1"])

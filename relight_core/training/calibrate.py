@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from dataclasses import replace
 from pathlib import Path
 
@@ -244,7 +245,7 @@ def write_strengths(args, weights, items, relighter, after: str) -> int:
     if args.write:
         config = Path(weights) / CONFIG_FILE if weights is not None else None
         if config is None or not config.is_file():
-            print(f"error: {args.model} has no config.json to write the strengths into.")
+            print(f"error: {args.model} has no config.json to write the strengths into.", file=sys.stderr)
             return 2
         data = json.loads(config.read_text())
         for slot, strength in best.items():
