@@ -389,17 +389,30 @@ class Relighter(CostModel):
         size = self.spec.lighting_size or 32
         return lighting.downsample_panorama(panoramas, min(size, panoramas.shape[1], panoramas.shape[2]))
 
+    def clip_refiners(self, lit: bool = True) -> dict[str, str]:
+        """{clip: the slot ("refiner", "relit_refiner") of the refiner whose result that clip ("relit",
+        "albedo") is}: each refiner corrects its clips, and where both correct one the relit refiner's wins.
+        With `lit` False (a random light) a refiner that sees the light is left out. A clip no refiner
+        corrects is not listed."""
+        owners = {}
+        for slot in ("refiner", "relit_refiner"):     # the later one wins
+            refiner = getattr(self, slot)
+            if refiner is not None and (lit or not refiner.config.lighting):
+                owners.update({clip: slot for clip in refiner.config.clips})
+        return {clip: owners[clip] for clip in ("relit", "albedo") if clip in owners}
+
     def _refined(self, mode: str, frames: np.ndarray, relit: np.ndarray, albedo: np.ndarray,
                  light: torch.Tensor | None = None) -> tuple[np.ndarray, np.ndarray]:
         """The relit and albedo frames [T,H,W,3] in [0, 1] after the model's refiners (refiner.py: they
         sharpen what the DiT made, looking at the input; one may see the target light `light`, the
         chunk's camera-frame panoramas [T,s,s,3] from `_refiner_light`) or, for a model without one, its
-        offset filter (`_smoothed`). Each refiner corrects its clips from the same frames (the relit
-        refiner's win where both correct one); a clip none corrects comes back as the first one's base.
+        offset filter (`_smoothed`). Each refiner corrects its clips from the same frames (`clip_refiners`:
+        the relit refiner's win where both correct one); a clip none corrects comes back as the first one's base.
         A refiner that sees the light is left out when there is none (a random light). Not in render
         mode, whose outputs do not start from an input photo."""
-        refiners = [r for r in (self.refiner, self.relit_refiner)
-                    if r is not None and (light is not None or not r.config.lighting)]
+        slots = [slot for slot in ("refiner", "relit_refiner") if getattr(self, slot) is not None
+                 and (light is not None or not getattr(self, slot).config.lighting)]
+        refiners = [getattr(self, slot) for slot in slots]
         if not refiners or mode == "render":
             return self._smoothed(mode, frames, relit, albedo)
 
@@ -423,10 +436,9 @@ class Relighter(CostModel):
                     relit_parts.append(r.float())
                     albedo_parts.append(a.float())
         out = list((relit, albedo) if refiners[0].config.base == "raw" else filtered)
-        for refiner, parts in zip(refiners, refined):
-            for k, clip in enumerate(("relit", "albedo")):
-                if clip in refiner.config.clips:   # a clip it does not correct comes back exactly as it was
-                    out[k] = unsigned(parts[k])
+        for clip, slot in self.clip_refiners(light is not None).items():   # the others come back exactly as they were
+            k = ("relit", "albedo").index(clip)
+            out[k] = unsigned(refined[slots.index(slot)][k])
         return out[0], out[1]
 
     def _smoothed(self, mode: str, frames: np.ndarray, relit: np.ndarray, albedo: np.ndarray

@@ -411,6 +411,8 @@ def test_a_relit_refiner_beside_the_albedo_one_corrects_the_relit_frames_with_th
         torch.nn.init.normal_(relit_refiner.head.weight, std=0.05)
         torch.nn.init.normal_(relit_refiner.film[-1].weight, std=0.5)
     both = Relighter(spec, dit, tok, refiner=albedo_refiner, relit_refiner=relit_refiner)
+    assert both.clip_refiners() == {"relit": "relit_refiner", "albedo": "refiner"}
+    assert both.clip_refiners(lit=False) == {"albedo": "refiner"}    # it sees the light: none, it stays out
     result = both.relight(request)
     np.testing.assert_allclose(result.albedo, np.clip(filtered.albedo - 0.2, 0, 1), atol=2e-3)
     assert np.abs(result.relit - filtered.relit).max() > 1e-3                     # the relit refiner's
@@ -534,6 +536,7 @@ def test_a_refiners_strength_scales_its_correction_and_calibrate_picks_it_per_re
 
     spec, dit, tok = residual_model()
     both = Relighter(spec, dit, tok, refiner=Refiner(config), relit_refiner=Refiner(replace(config, clips=("relit",))))
+    assert both.clip_refiners() == {"relit": "relit_refiner", "albedo": "refiner"}     # the relit refiner's relit wins
     assert calibrate.refiner_owners(both) == {"relit_refiner": ["relit"], "refiner": ["albedo"]}
     assert calibrate.refiner_owners(Relighter(spec, dit, tok, refiner=Refiner(config))) == {"refiner": ["relit", "albedo"]}
     table = {0.5: {"relit": 21.0, "albedo": 20.0}, 0.8: {"relit": 22.0, "albedo": 20.01}, 1.0: {"relit": 21.5, "albedo": 20.0}}

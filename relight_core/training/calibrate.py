@@ -97,15 +97,11 @@ def measure_filters(relighter, items, grid, radii, epsilons, seed: int = 0
 
 
 def refiner_owners(relighter) -> dict[str, list[str]]:
-    """{slot: the clips whose result it supplies} for the model's refiners ("refiner", "relit_refiner"): where
-    both correct a clip, the relit refiner's result is used (`Relighter._refined`), so the clip is its."""
+    """{slot: the clips whose result it supplies} for the model's refiners (`Relighter.clip_refiners`
+    inverted: where both correct a clip, the relit refiner's result is the one used)."""
     owners = {}
-    for clip in ("relit", "albedo"):
-        for slot in ("relit_refiner", "refiner"):
-            refiner = getattr(relighter, slot)
-            if refiner is not None and clip in refiner.config.clips:
-                owners.setdefault(slot, []).append(clip)
-                break
+    for clip, slot in relighter.clip_refiners().items():
+        owners.setdefault(slot, []).append(clip)
     return owners
 
 
