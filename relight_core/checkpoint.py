@@ -102,7 +102,8 @@ class ModelSpec:
                                      '"widths" (1 to 6 whole numbers from 1 to 1024), "blocks" (0 to 8), "base" '
                                      '("raw" or "filtered"), "clips" (["relit", "albedo"] or one of them), '
                                      '"flip_average" and "lighting" (true or false), "relit_gain" (a cell of 0 to 64 '
-                                     'pixels) and "strength" (0 to 2), or leave it out.') from None
+                                     'pixels), "input_mix" (true or false; true only with a relit_gain cell and the relit clip) and '
+                                     '"strength" (0 to 2), or leave it out.') from None
         return cls(**kwargs)
 
 

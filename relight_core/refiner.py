@@ -17,6 +17,9 @@ one without it follows the probe only through the DiT. With `relit_gain` the rel
 added but multiplies the relit base as a smooth gain (one log gain per k×k-pixel cell, interpolated):
 it can brighten, darken and tint regions, and cannot draw an edge the base does not have or lift its
 blacks much — an added correction did both on a photo unlike the training scenes (docs/QUALITY.md).
+With `input_mix` as well, the gained relit frame is mixed, cell by cell and as smoothly, with the input
+under a gain of its own: where the light changes little, or only by a smooth ratio, the input's own
+detail (texture, outlines) can come through instead of the DiT's softer frame.
 Its last layer starts at zero, so an untrained refiner returns its base unchanged. With `flip_average`
 its correction is the mean of the one for the frames and the one for their mirror image flipped back
 (two passes, one batch; the mirrored pass sees the mirrored light, u → 1 − u).
@@ -42,6 +45,8 @@ REFINER_SLOTS = {"refiner": REFINER_FILE, "relit_refiner": RELIT_REFINER_FILE}  
 LIGHT_GRID = 8                                 # the probe as the refiner sees it: 8×8 area averages
 LIGHT_FEATURES = 3 * LIGHT_GRID * LIGHT_GRID
 GAIN_EPSILON = 0.02                            # `relit_gain`: black plus this is what the gain multiplies
+MIX_OFFSET = 5.0                               # `input_mix`: the input's weight is sigmoid(MIX_SCALE·z − MIX_OFFSET):
+MIX_SCALE = 8.0                                # ~0.007 at z = 0, and the logit learns as fast as a gain would
 
 
 @dataclass(frozen=True)
@@ -57,6 +62,9 @@ class RefinerConfig:
                                                   # on the relit base, averaged over k×k-pixel cells and
                                                   # smoothly interpolated (`corrected`): it can brighten,
                                                   # darken and tint, but draws no edge the base lacks
+    input_mix: bool = False                       # with relit_gain: the relit frame is a smooth per-cell mix of
+                                                  # the gained base and the input under a gain of its own
+                                                  # (`corrected`): the input's detail where it holds
     strength: float = 1.0                         # scales its corrections (the log gain with relit_gain):
                                                   # chosen on held-out scenes by `training.calibrate
                                                   # --strengths`, where a correction learnt on training
@@ -70,6 +78,7 @@ class RefinerConfig:
         lighting = data.get("lighting", cls.lighting)
         relit_gain = data.get("relit_gain", cls.relit_gain)
         strength = data.get("strength", cls.strength)
+        input_mix = data.get("input_mix", cls.input_mix)
 
         def whole(v, low, high):
             return isinstance(v, int) and not isinstance(v, bool) and low <= v <= high
@@ -80,13 +89,15 @@ class RefinerConfig:
                 or not clips or not set(clips) <= {"relit", "albedo"} or not isinstance(flip_average, bool)
                 or not isinstance(lighting, bool) or not whole(relit_gain, 0, 64)
                 or isinstance(strength, bool) or not isinstance(strength, (int, float))
-                or not 0 <= strength <= 2):
+                or not 0 <= strength <= 2 or not isinstance(input_mix, bool)
+                or (input_mix and not (relit_gain and "relit" in clips))):
             raise ValueError(f"a refiner takes 1–6 widths from 1 to 1024, 0–8 blocks, base raw or filtered, "
                              f"clips relit and/or albedo, flip_average and lighting true or false, a "
-                             f"relit_gain cell of 0–64 pixels and a strength from 0 to 2; got {data!r}")
+                             f"relit_gain cell of 0–64 pixels, a strength from 0 to 2 and input_mix true or "
+                             f"false (true only with a relit_gain cell and the relit clip); got {data!r}")
         return cls(widths=tuple(widths), blocks=blocks, base=base,
                    clips=tuple(c for c in ("relit", "albedo") if c in clips), flip_average=flip_average,
-                   lighting=lighting, relit_gain=relit_gain, strength=float(strength))
+                   lighting=lighting, relit_gain=relit_gain, input_mix=input_mix, strength=float(strength))
 
     def to_dict(self) -> dict:
         out = {"widths": list(self.widths), "blocks": self.blocks, "base": self.base, "clips": list(self.clips)}
@@ -96,16 +107,24 @@ class RefinerConfig:
             out["lighting"] = True
         if self.relit_gain:
             out["relit_gain"] = self.relit_gain
+        if self.input_mix:
+            out["input_mix"] = True
         if self.strength != 1.0:
             out["strength"] = self.strength
         return out
 
     @property
     def shape(self) -> tuple:
-        """What its weights depend on (widths, blocks, base, lighting); `clips`, `flip_average`,
-        `relit_gain` and `strength` only change how they are used, so a run may resume or start from
-        weights with other ones."""
-        return self.widths, self.blocks, self.base, self.lighting
+        """What its weights depend on (widths, blocks, base, lighting, input_mix: its head's channels);
+        `clips`, `flip_average`, `relit_gain` and `strength` only change how they are used, so a run may
+        resume or start from weights with other ones."""
+        return self.widths, self.blocks, self.base, self.lighting, self.input_mix
+
+    @property
+    def out_channels(self) -> int:
+        """The head's: the relit and albedo corrections, and with `input_mix` the input's log gain and
+        the mix's logit."""
+        return 10 if self.input_mix else 6
 
     @property
     def in_channels(self) -> int:
@@ -151,7 +170,7 @@ class _Block(nn.Module):
 
 class Refiner(nn.Module):
     """U-Net: [B,9,H,W] (input, relit, albedo in [-1, 1]; with base "filtered" also the filtered relit
-    and albedo: [B,15,H,W]) → [B,6,H,W] corrections (relit, albedo)."""
+    and albedo: [B,15,H,W]) → [B,6,H,W] corrections (relit, albedo; [B,10,H,W] with `input_mix`)."""
 
     def __init__(self, config: RefinerConfig = RefinerConfig()):
         super().__init__()
@@ -163,7 +182,7 @@ class Refiner(nn.Module):
         self.mid = nn.Sequential(*[_Block(w[-1]) for _ in range(2 * config.blocks)])
         self.up = nn.ModuleList(nn.Conv2d(b + a, a, 1) for a, b in zip(w[:-1], w[1:]))
         self.dec = nn.ModuleList(nn.Sequential(*[_Block(c) for _ in range(config.blocks)]) for c in w[:-1])
-        self.head = nn.Conv2d(w[0], 6, 3, padding=1)
+        self.head = nn.Conv2d(w[0], config.out_channels, 3, padding=1)
         nn.init.zeros_(self.head.weight)
         nn.init.zeros_(self.head.bias)
         # FiLM: a scale and shift per channel of the middle and of each decoder level, deepest first
@@ -174,7 +193,7 @@ class Refiner(nn.Module):
             nn.init.zeros_(self.film[-1].bias)
 
     def forward(self, x: torch.Tensor, light: torch.Tensor | None = None) -> torch.Tensor:
-        """Corrections [B,6,H,W] for network input `x`; `light` [B,192] (`light_features`) for a refiner
+        """Corrections [B,6|10,H,W] for network input `x`; `light` [B,192] (`light_features`) for a refiner
         with lighting (required there, not taken otherwise)."""
         if self.config.lighting != (light is not None):
             raise ValueError("a refiner with lighting takes the light's features, one without takes none")
@@ -204,7 +223,7 @@ class Refiner(nn.Module):
         return self.head(F.silu(h))
 
     def correction(self, x: torch.Tensor, panoramas: torch.Tensor | None = None) -> torch.Tensor:
-        """The corrections [B,6,H,W] for network input `x` [B,9|15,H,W] (`network_input`) and, for a
+        """The corrections [B,6|10,H,W] for network input `x` [B,9|15,H,W] (`network_input`) and, for a
         refiner with lighting, the target's camera-frame panoramas [B,h,w,3]: the network's own, or with
         `flip_average` the mean of it and the mirror image's (under the mirrored light) flipped back."""
         if self.config.lighting and panoramas is None:
@@ -225,15 +244,18 @@ class Refiner(nn.Module):
         lighting, the target's camera-frame panoramas [B,h,w,3]); any frame size (each level's result
         is brought back to its skip's size)."""
         x, relit, albedo = network_input(self.config.base, inputs, relit, albedo, filtered)
-        return self.corrected(self.correction(x, panoramas).to(relit.dtype), relit, albedo)
+        return self.corrected(self.correction(x, panoramas).to(relit.dtype), relit, albedo, inputs=inputs)
 
-    def corrected(self, delta: torch.Tensor, relit: torch.Tensor, albedo: torch.Tensor, clamp: bool = True
-                  ) -> tuple[torch.Tensor, torch.Tensor]:
-        """The base frames (relit, albedo) [B,3,H,W] in [-1, 1] with the corrections `delta` [B,6,H,W] applied
-        to the clips it corrects (the others come back as they were): added, or with `relit_gain` the relit
-        one as a smooth gain, (relit + ε)·exp(g) − ε in [0, 1] display values (ε = 0.02), g the correction
-        averaged over relit_gain-pixel cells and bilinearly interpolated back; both scaled by `strength`
-        (the gain raised to it). The one place this is done, for training (`clamp` False: the loss sees
+    def corrected(self, delta: torch.Tensor, relit: torch.Tensor, albedo: torch.Tensor, clamp: bool = True,
+                  inputs: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """The base frames (relit, albedo) [B,3,H,W] in [-1, 1] with the corrections `delta` [B,6|10,H,W]
+        applied to the clips it corrects (the others come back as they were): added, or with `relit_gain`
+        the relit one as a smooth gain, (relit + ε)·exp(g) − ε in [0, 1] display values (ε = 0.02), g the
+        correction averaged over relit_gain-pixel cells and bilinearly interpolated back; both scaled by
+        `strength` (the gain raised to it). With `input_mix` the relit frame is then mixed, cell by cell,
+        with the input frames `inputs` [B,3,H,W] (required there) under a smooth gain of their own:
+        (1 − m)·relit′ + m·((input + ε)·exp(g_in) − ε), m = sigmoid(8z − 5) (~0.007 at the start), g_in
+        and z made smooth like g. The one place this is done, for training (`clamp` False: the loss sees
         values past [-1, 1]) and for use."""
         def bounded(x: torch.Tensor) -> torch.Tensor:
             return x.clamp(-1, 1) if clamp else x
@@ -245,10 +267,20 @@ class Refiner(nn.Module):
             if self.config.relit_gain:
                 cell = self.config.relit_gain
                 h, w = relit.shape[-2:]
-                g = F.adaptive_avg_pool2d(delta[:, :3].float(), (-(-h // cell), -(-w // cell)))
-                g = F.interpolate(g, size=(h, w), mode="bilinear", align_corners=False).clamp(-4, 4)
+
+                def smooth(d: torch.Tensor) -> torch.Tensor:
+                    d = F.adaptive_avg_pool2d(d.float(), (-(-h // cell), -(-w // cell)))
+                    return F.interpolate(d, size=(h, w), mode="bilinear", align_corners=False)
+
                 eps = 2 * GAIN_EPSILON      # in [-1, 1] units
-                relit = bounded(((relit + 1 + eps) * torch.exp(g) - eps - 1).to(relit.dtype))
+                gained = (relit.float() + 1 + eps) * torch.exp(smooth(delta[:, :3]).clamp(-4, 4)) - eps - 1
+                if self.config.input_mix:
+                    if inputs is None:
+                        raise ValueError("this refiner mixes the input into the relit frames; pass the input")
+                    own = (inputs.float() + 1 + eps) * torch.exp(smooth(delta[:, 6:9]).clamp(-4, 4)) - eps - 1
+                    mix = torch.sigmoid(MIX_SCALE * smooth(delta[:, 9:10]) - MIX_OFFSET)
+                    gained = gained + mix * (own - gained)
+                relit = bounded(gained.to(relit.dtype))
             else:
                 relit = bounded(relit + delta[:, :3])
         if "albedo" in self.config.clips:

@@ -485,6 +485,79 @@ def test_a_relit_gain_refiner_multiplies_its_base_by_a_smooth_field_and_draws_no
 
 
 
+def test_an_input_mix_refiner_mixes_the_gained_input_into_the_relit_frames_cell_by_cell_and_learns_when_to(tmp_path):
+    torch.manual_seed(9)
+    config = RefinerConfig(widths=(4, 8), blocks=1, base="filtered", clips=("relit",), relit_gain=8, input_mix=True)
+    assert RefinerConfig.from_dict(config.to_dict()) == config and config.to_dict()["input_mix"] is True
+    plain = replace(config, input_mix=False)
+    assert "input_mix" not in plain.to_dict() and plain.shape != config.shape       # its head has 4 more channels
+    for bad in ({"input_mix": 1}, {"input_mix": True, "relit_gain": 0}, {"input_mix": True, "clips": ["albedo"]}):
+        with pytest.raises(ValueError, match="input_mix"):
+            RefinerConfig.from_dict({**config.to_dict(), **bad})
+    refiner = Refiner(config)
+    assert refiner.head.out_channels == 10
+    base, albedo = torch.rand(1, 3, 32, 32) * 1.6 - 0.8, torch.rand(1, 3, 32, 32) * 1.6 - 0.8
+    inputs = torch.rand(1, 3, 32, 32) * 1.6 - 0.8
+    eps = 2 * 0.02
+
+    def constant(relit_gain: float, input_gain: float, logit: float) -> torch.Tensor:
+        delta = torch.zeros(1, 10, 32, 32)
+        delta[:, :3], delta[:, 6:9], delta[:, 9] = relit_gain, input_gain, logit
+        return delta
+
+    gained_base = (base + 1 + eps) * np.exp(0.2) - eps - 1
+    gained_input = (inputs + 1 + eps) * np.exp(-0.3) - eps - 1
+    # the logit far up: the input under its own gain; far down: the base under its gain; at the offset, halfway
+    up, same_albedo = refiner.corrected(constant(0.2, -0.3, 40.0), base, albedo, clamp=False, inputs=inputs)
+    torch.testing.assert_close(up, gained_input)
+    assert torch.equal(same_albedo, albedo)
+    down, _ = refiner.corrected(constant(0.2, -0.3, -40.0), base, albedo, clamp=False, inputs=inputs)
+    torch.testing.assert_close(down, gained_base)
+    half, _ = refiner.corrected(constant(0.2, -0.3, 5.0 / 8), base, albedo, clamp=False, inputs=inputs)
+    torch.testing.assert_close(half, (gained_base + gained_input) / 2)
+    # each cell mixes on its own: the left half takes the input, the right half the base (bilinear between)
+    split = constant(0.0, 0.0, -40.0)
+    split[:, 9, :, :16] = 40.0
+    mixed, _ = refiner.corrected(split, base, albedo, clamp=False, inputs=inputs)
+    torch.testing.assert_close(mixed[..., :4], inputs[..., :4])
+    torch.testing.assert_close(mixed[..., 28:], base[..., 28:])
+    with pytest.raises(ValueError, match="pass the input"):
+        refiner.corrected(split, base, albedo)
+    # Started from a refiner without the mix (--init): the same weights, the mix's channels at zero — the
+    # input's weight sigmoid(−5), so the output moves by under 1% of the input's difference from it.
+    old = Refiner(plain)
+    for parameter in old.parameters():
+        torch.nn.init.normal_(parameter, std=0.1)
+    save_file({k: v.contiguous() for k, v in old.state_dict().items()}, tmp_path / "old.safetensors")
+    assert "input mix new" in refine.initial_weights(refiner, tmp_path / "old.safetensors")
+    with torch.no_grad():
+        before, _ = old.refine(inputs, base, albedo, (base * 0.9, albedo * 0.9))
+        after, _ = refiner.refine(inputs, base, albedo, (base * 0.9, albedo * 0.9))
+    assert 0 < (after - before).abs().max() <= 2 * torch.sigmoid(torch.tensor(-5.0))   # frames span [-1, 1]
+    # Trained where the input is the answer (the relit base a blur of it), the mix learns to take the input
+    # (training's optimiser: the last layer, where the mix starts, may learn faster than the rest: --head-lr).
+    sharp = (torch.rand(4, 3, 32, 32) > 0.5).float() * 1.6 - 0.8
+    blurred = F.avg_pool2d(sharp, 5, 1, 2)
+    refiner = Refiner(config)
+    optimiser = refine.refiner_optimizer(refiner, 1e-2, head_lr=2.0)
+    rest, head = optimiser.param_groups
+    assert [id(p) for p in head["params"]] == [id(refiner.head.weight), id(refiner.head.bias)]
+    assert (rest["scale"], head["scale"]) == (1.0, 2.0) and len(rest["params"]) == len(list(refiner.parameters())) - 2
+    for group in optimiser.param_groups:
+        group["lr"] = 1e-2 * group["scale"]
+    mask = torch.ones(4, 32, 32)
+    losses = []
+    for _ in range(60):
+        x, r, _ = refine.network_input("filtered", sharp, blurred, blurred, (blurred, blurred))
+        relit, _ = refiner.corrected(refiner(x), r, blurred, clamp=False, inputs=sharp)
+        loss = refine.item_loss(relit, sharp, mask)
+        optimiser.zero_grad()
+        loss.backward()
+        optimiser.step()
+        losses.append(loss.item())
+    assert losses[-1] < losses[0] - 2.0                     # log MSE: far closer to the sharp input
+
+
 def test_cached_outputs_reuses_the_items_a_file_holds_by_name_direction_and_same(tmp_path):
     """The DiT's outputs are kept by (scene name, target light, same): a file written for other items gives
     back the frames of those it holds, in the new order, and names the rows it lacks."""

@@ -246,7 +246,7 @@ def validate(refiner: Refiner, data: dict, autocast: bool) -> dict[str, float]:
         with torch.autocast("cpu", dtype=torch.bfloat16, enabled=autocast):
             delta = refiner.correction(x.contiguous(memory_format=torch.channels_last),
                                        get("env") if refiner.config.lighting else None).float()
-        r, a = refiner.corrected(delta, r, a)
+        r, a = refiner.corrected(delta, r, a, inputs=x[:, :3])
         relit.append((r + 1) / 2)
         albedo.append((a + 1) / 2)
     return scores(data, torch.cat(relit).permute(0, 2, 3, 1).numpy(), torch.cat(albedo).permute(0, 2, 3, 1).numpy())
@@ -272,7 +272,8 @@ def train(args: argparse.Namespace, log=print) -> dict:
     torch.set_num_threads(args.threads)
     spec, _, _ = load_model(args.model, "cpu")
     config = RefinerConfig(widths=tuple(args.widths), blocks=args.blocks, base=args.base, clips=tuple(args.clips),
-                           flip_average=args.flip_average, lighting=args.lighting, relit_gain=args.relit_gain)
+                           flip_average=args.flip_average, lighting=args.lighting, relit_gain=args.relit_gain,
+                           input_mix=args.input_mix)
     pack = load_packs(args.pack)
     if len(set(map(str, pack["names"]))) < len(pack["names"]):
         raise ValueError("the --pack files hold scenes of the same name (two render-data runs' scene_000000, say), "
@@ -292,7 +293,7 @@ def train(args: argparse.Namespace, log=print) -> dict:
 
     model = Refiner(config).to(memory_format=torch.channels_last)   # ~1.4× faster convolutions on a CPU
     ema = copy.deepcopy(model).eval().requires_grad_(False)
-    optimizer = torch.optim.AdamW(model.parameters(), lr=args.lr, weight_decay=0.0)
+    optimizer = refiner_optimizer(model, args.lr, args.head_lr)
     generator = torch.Generator().manual_seed(args.seed)
     state = {"step": 0, "seconds": 0.0, "best": None,
              "start": {"dit": scores(val_data, _hwc(val_data["relit"]), _hwc(val_data["albedo"]))}}
@@ -320,6 +321,8 @@ def train(args: argparse.Namespace, log=print) -> dict:
                         if clip in config.clips:
                             model.head.weight[3 * k:3 * k + 3] = 0
                             model.head.bias[3 * k:3 * k + 3] = 0
+                    model.head.weight[6:] = 0       # the input mix's channels (input_mix), if any
+                    model.head.bias[6:] = 0
                 how += "; the corrected clips' head set to zero"
             ema.load_state_dict(model.state_dict())
             state["start"]["init"] = validate(ema, val_data, autocast)   # what the run must beat
@@ -351,12 +354,12 @@ def train(args: argparse.Namespace, log=print) -> dict:
             targets = {k: permute_colours(t, order) for k, t in targets.items()}
             env = env.gather(3, order.view(-1, 1, 1, 3).expand_as(env))     # the light's colours alike
         for group in optimizer.param_groups:
-            group["lr"] = args.lr * min(1.0, (state["step"] + 1) / args.warmup)
+            group["lr"] = args.lr * group["scale"] * min(1.0, (state["step"] + 1) / args.warmup)
         with torch.autocast("cpu", dtype=torch.bfloat16, enabled=autocast):
             delta = model(x.contiguous(memory_format=torch.channels_last),
                           light_features(env) if config.lighting else None).float()
         mask = get("mask")
-        refined = dict(zip(("relit", "albedo"), model.corrected(delta, r, a, clamp=False)))
+        refined = dict(zip(("relit", "albedo"), model.corrected(delta, r, a, clamp=False, inputs=x[:, :3])))
         loss = sum(item_loss(refined[clip], targets[clip], mask) for clip in config.clips)
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
@@ -391,6 +394,15 @@ def train(args: argparse.Namespace, log=print) -> dict:
     return best
 
 
+def refiner_optimizer(model: Refiner, lr: float, head_lr: float = 1.0) -> torch.optim.AdamW:
+    """AdamW over `model`'s weights, its last layer (`head`) at `head_lr` times `lr`: each group's "scale",
+    which the warm-up multiplies in."""
+    head = [p for name, p in model.named_parameters() if name.startswith("head.")]
+    rest = [p for name, p in model.named_parameters() if not name.startswith("head.")]
+    return torch.optim.AdamW([{"params": rest, "scale": 1.0}, {"params": head, "scale": head_lr}],
+                             lr=lr, weight_decay=0.0)
+
+
 def initial_weights(refiner: Refiner, path: Path) -> str:
     """Load `--init`'s refiner weights (safetensors) into `refiner`, or fail in one sentence. A refiner of
     the same shape loads as it is; one with a level fewer (the same widths but the last, blocks and base)
@@ -404,6 +416,14 @@ def initial_weights(refiner: Refiner, path: Path) -> str:
         # a refiner without the light: it gains the FiLM, which starts at zero (the same output)
         state = {**state, **{k: v for k, v in refiner.state_dict().items() if k.startswith("film.")}}
         lit = ", with the light's FiLM new"
+    head = state.get("head.weight")
+    if refiner.config.input_mix and head is not None and head.shape[0] == 6:
+        # a refiner without the input mix: its head gains the mix's channels, at zero (the input's weight
+        # starts at sigmoid(−5), the output nearly the same)
+        fresh = refiner.state_dict()
+        state = {**state, "head.weight": torch.cat([head, fresh["head.weight"][6:]]),
+                 "head.bias": torch.cat([state["head.bias"], fresh["head.bias"][6:]])}
+        lit += ", with the input mix new"
     try:
         refiner.load_state_dict(state)
         return "as it is" + lit
@@ -513,6 +533,8 @@ def main(argv: list[str] | None = None) -> int:
                         "or with a level or some blocks fewer (a run that resumes from its checkpoint ignores it)")
     parser.add_argument("--minutes", type=float, default=30.0)
     parser.add_argument("--lr", type=float, default=1.5e-3)
+    parser.add_argument("--head-lr", type=float, default=1.0,
+                        help="the last layer's learning rate as a multiple of --lr (a new input mix learns faster)")
     parser.add_argument("--batch", type=int, default=16)
     parser.add_argument("--warmup", type=int, default=100)
     parser.add_argument("--ema", type=float, default=0.998)
@@ -531,6 +553,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--relit-gain", type=int, default=0, metavar="CELL",
                         help="the relit correction is a smooth gain on the relit base, one value per CELL×CELL pixels "
                              "interpolated (refiner.RefinerConfig.relit_gain): it cannot draw an edge; 0 (default): added")
+    parser.add_argument("--input-mix", action="store_true",
+                        help="with --relit-gain: the relit frame is a smooth per-cell mix of the gained base and the "
+                             "input under its own gain (refiner.RefinerConfig.input_mix): the input's detail where it holds")
     parser.add_argument("--zero-head", action="store_true",
                         help="with --init: start the corrected clips' correction at zero (from a refiner trained for other clips)")
     parser.add_argument("--slot", choices=tuple(REFINER_SLOTS), default="refiner",
@@ -551,7 +576,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         RefinerConfig.from_dict({"widths": args.widths, "blocks": args.blocks, "base": args.base, "clips": args.clips,
                                  "flip_average": args.flip_average, "lighting": args.lighting,
-                                 "relit_gain": args.relit_gain})
+                                 "relit_gain": args.relit_gain, "input_mix": args.input_mix})
     except ValueError as error:
         parser.error(str(error))
     threads = torch.get_num_threads()
