@@ -556,6 +556,17 @@ def test_an_input_mix_refiner_mixes_the_gained_input_into_the_relit_frames_cell_
         optimiser.step()
         losses.append(loss.item())
     assert losses[-1] < losses[0] - 2.0                     # log MSE: far closer to the sharp input
+    # A run resumes its optimiser with the scales it had; one saved before the head had a group of its own
+    # (one group, no scale) resumes as that one group at scale 1.
+    again = refine.refiner_optimizer(refiner, 1e-2, head_lr=7.0, saved=optimiser.state_dict())
+    assert [g["scale"] for g in again.param_groups] == [1.0, 2.0]
+    assert torch.equal(again.state[refiner.head.bias]["exp_avg"], optimiser.state[refiner.head.bias]["exp_avg"])
+    old_style = torch.optim.AdamW(refiner.parameters(), lr=1e-2)
+    refiner(x).sum().backward()
+    old_style.step()
+    resumed = refine.refiner_optimizer(refiner, 1e-2, head_lr=7.0, saved=old_style.state_dict())
+    assert len(resumed.param_groups) == 1 and resumed.param_groups[0]["scale"] == 1.0
+    assert torch.equal(resumed.state[refiner.head.weight]["exp_avg_sq"], old_style.state[refiner.head.weight]["exp_avg_sq"])
 
 
 def test_cached_outputs_reuses_the_items_a_file_holds_by_name_direction_and_same(tmp_path):

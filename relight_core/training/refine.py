@@ -304,10 +304,10 @@ def train(args: argparse.Namespace, log=print) -> dict:
         saved = torch.load(checkpoint, map_location="cpu", weights_only=True)
         if RefinerConfig.from_dict(saved["config"]).shape != config.shape:
             raise ValueError(f"{checkpoint} is a refiner of another shape ({saved['config']}); "
-                             "give a new --out or the same --widths/--blocks/--base")
+                             "give a new --out or the same --widths/--blocks/--base/--lighting/--input-mix")
         model.load_state_dict(saved["model"])
         ema.load_state_dict(saved["ema"])
-        optimizer.load_state_dict(saved["optimizer"])
+        optimizer = refiner_optimizer(model, args.lr, args.head_lr, saved["optimizer"])
         generator.set_state(saved["generator"])
         state = json.loads(saved["state"])
         log(f"resumed at step {state['step']} ({state['seconds'] / 60:.1f} min used)"
@@ -394,13 +394,23 @@ def train(args: argparse.Namespace, log=print) -> dict:
     return best
 
 
-def refiner_optimizer(model: Refiner, lr: float, head_lr: float = 1.0) -> torch.optim.AdamW:
+def refiner_optimizer(model: Refiner, lr: float, head_lr: float = 1.0, saved: dict | None = None
+                      ) -> torch.optim.AdamW:
     """AdamW over `model`'s weights, its last layer (`head`) at `head_lr` times `lr`: each group's "scale",
-    which the warm-up multiplies in."""
-    head = [p for name, p in model.named_parameters() if name.startswith("head.")]
-    rest = [p for name, p in model.named_parameters() if not name.startswith("head.")]
-    return torch.optim.AdamW([{"params": rest, "scale": 1.0}, {"params": head, "scale": head_lr}],
-                             lr=lr, weight_decay=0.0)
+    which the warm-up multiplies in. With `saved` (a checkpoint's optimiser state) it resumes that one, its
+    scales as they were; one saved before the head had a group of its own resumes as its one group."""
+    if saved is not None and len(saved["param_groups"]) == 1:
+        groups = [{"params": list(model.parameters()), "scale": 1.0}]
+    else:
+        head = [p for name, p in model.named_parameters() if name.startswith("head.")]
+        rest = [p for name, p in model.named_parameters() if not name.startswith("head.")]
+        groups = [{"params": rest, "scale": 1.0}, {"params": head, "scale": head_lr}]
+    optimizer = torch.optim.AdamW(groups, lr=lr, weight_decay=0.0)
+    if saved is not None:
+        optimizer.load_state_dict(saved)
+        for group in optimizer.param_groups:
+            group.setdefault("scale", 1.0)
+    return optimizer
 
 
 def initial_weights(refiner: Refiner, path: Path) -> str:
