@@ -293,9 +293,11 @@ def test_refine_trains_on_unseen_scenes_resumes_and_writes_a_model_the_relighter
            "--minutes", "0.03", "--val-every-minutes", "0.01", "--warmup", "2", "--scenes", "2",
            "--model", str(tmp_path / "refined"), "--model-dir", str(tmp_path / "refined3"), "--flip-average",
            "--permute-colours", "--clips", "relit", "--lighting", "--zero-head", "--slot", "relit_refiner",
-           "--same-scenes", "1", "--relit-gain", "4", *init]
+           "--same-scenes", "1", "--relit-gain", "4", "--alike-weight", "2", "--alike-db", "0", *init]
     assert refine.main(lit) == 0
-    assert "with the light's FiLM new; the corrected clips' head set to zero" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "with the light's FiLM new; the corrected clips' head set to zero" in out
+    assert "4 of 5 items have a floor of 0.0 dB or more; drawn 2.0× as often" in out     # the same-light one is not
     best4 = json.loads((tmp_path / "run4" / "best.json").read_text())
     assert best4["refiner"]["lighting"] and best4["refiner"]["clips"] == ["relit"] and best4["refiner"]["relit_gain"] == 4
     # --same-scenes: one training scene and every validation scene also relit to its own light, scored apart.
@@ -567,6 +569,23 @@ def test_an_input_mix_refiner_mixes_the_gained_input_into_the_relit_frames_cell_
     resumed = refine.refiner_optimizer(refiner, 1e-2, head_lr=7.0, saved=old_style.state_dict())
     assert len(resumed.param_groups) == 1 and resumed.param_groups[0]["scale"] == 1.0
     assert torch.equal(resumed.state[refiner.head.weight]["exp_avg_sq"], old_style.state[refiner.head.weight]["exp_avg_sq"])
+
+
+def test_input_floors_are_the_protocols_psnr_of_the_input_against_the_target():
+    """What --alike-weight draws more often: items whose input is already close to the target."""
+    from relight_core.evaluation.metrics import protocol_psnr
+
+    g = torch.Generator().manual_seed(0)
+    target = torch.randint(0, 256, (3, 3, 16, 16), dtype=torch.uint8, generator=g)
+    tint = torch.tensor([0.5, 0.8, 1.2]).view(1, 3, 1, 1)                # scaled by the fit, clipped after it
+    noise = torch.tensor([2.0, 8.0, 30.0]).view(3, 1, 1, 1) * torch.randn(3, 3, 16, 16, generator=g)
+    inputs = (target.float() * tint + noise).clamp(0, 255).to(torch.uint8)
+    mask = torch.rand(3, 16, 16, generator=g) > 0.3
+    floors = refine.input_floors({"input": inputs, "target": target, "mask": mask})
+    hwc = lambda x: x.permute(1, 2, 0).numpy()[None] / 255.0              # noqa: E731
+    expected = [protocol_psnr(hwc(inputs[k]), hwc(target[k]), mask[k].numpy()[None]) for k in range(3)]
+    np.testing.assert_allclose(floors.numpy(), expected, atol=1e-3)
+    assert floors[0] > floors[1] > floors[2]                              # less noise, a higher floor
 
 
 def test_cached_outputs_reuses_the_items_a_file_holds_by_name_direction_and_same(tmp_path):

@@ -189,6 +189,20 @@ def item_tensors(pack: dict, items: list[tuple[int, int, int]], outputs: dict, s
     return data
 
 
+def input_floors(data: dict) -> torch.Tensor:
+    """[N] the protocol's PSNR of each item's input against its target (the floor: how little the new light
+    changes the scene), after the per-channel scale fit on the mask (clipped to [0, 1]), over mask pixels."""
+    out = []
+    for start in range(0, len(data["input"]), 256):
+        part = slice(start, start + 256)
+        p, t = data["input"][part].float() / 255, data["target"][part].float() / 255
+        m = data["mask"][part][:, None].float()
+        scale = (m * p * t).sum((2, 3)) / (m * p * p).sum((2, 3)).clamp_min(1e-12)
+        error = (m * ((p * scale[..., None, None]).clamp(0, 1) - t) ** 2).sum((1, 2, 3)) / (m.sum((1, 2, 3)) * 3).clamp_min(1)
+        out.append(-10 * torch.log10(error.clamp_min(1e-10)))
+    return torch.cat(out)
+
+
 def _hwc(images: torch.Tensor) -> np.ndarray:
     """uint8 [N,3,H,W] → float32 [N,H,W,3] in [0, 1]."""
     return images.permute(0, 2, 3, 1).numpy().astype(np.float32) / 255
@@ -340,10 +354,17 @@ def train(args: argparse.Namespace, log=print) -> dict:
         state["best"] = score
 
     count = len(train_data["input"])
+    weights = None
+    if args.alike_weight != 1.0:       # items the new light changes little (a high floor), drawn more often
+        alike = (input_floors(train_data) >= args.alike_db) & ~train_data["same"]   # not the --same-scenes items
+        weights = torch.where(alike, args.alike_weight, 1.0)
+        log(f"{int(alike.sum())} of {count} items have a floor of {args.alike_db} dB or more; drawn "
+            f"{args.alike_weight}× as often")
     since_val, started = 0.0, time.time() - state["seconds"]
     while state["seconds"] < args.minutes * 60:
         step_started = time.time()
-        index = torch.randint(0, count, (args.batch,), generator=generator)
+        index = (torch.randint(0, count, (args.batch,), generator=generator) if weights is None
+                 else torch.multinomial(weights, args.batch, replacement=True, generator=generator))
         flip = torch.rand(args.batch, generator=generator) < 0.5
         x, r, a, get = model_inputs(train_data, index, config.base, flip)
         targets = {"relit": _signed(get("target")), "albedo": _signed(get("albedo_t"))}
@@ -566,6 +587,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--input-mix", action="store_true",
                         help="with --relit-gain: the relit frame is a smooth per-cell mix of the gained base and the "
                              "input under its own gain (refiner.RefinerConfig.input_mix): the input's detail where it holds")
+    parser.add_argument("--alike-weight", type=float, default=1.0,
+                        help="draw the items whose input is within --alike-db of the target (the new light changes "
+                             "little: the test split has twice the training share of them) this many times as often")
+    parser.add_argument("--alike-db", type=float, default=24.0)
     parser.add_argument("--zero-head", action="store_true",
                         help="with --init: start the corrected clips' correction at zero (from a refiner trained for other clips)")
     parser.add_argument("--slot", choices=tuple(REFINER_SLOTS), default="refiner",
