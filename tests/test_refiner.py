@@ -280,6 +280,9 @@ def test_refine_trains_on_unseen_scenes_resumes_and_writes_a_model_the_relighter
     with pytest.raises(SystemExit):
         refine.main([*fresh[:fresh.index("--init")], "--init", str(tmp_path / "nowhere.safetensors")])
     assert "no refiner weights at --init" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        refine.main([*fresh, "--alike-weight", "0"])
+    assert "--alike-weight takes a number above 0" in capsys.readouterr().err
     relighter = Relighter.load(str(tmp_path / "refined"))
     assert relighter.refiner is not None and relighter.refiner.config.base == "filtered"
     assert relighter.refiner.config.clips == ("albedo",) and relighter.refiner.config.flip_average

@@ -604,6 +604,8 @@ def main(argv: list[str] | None = None) -> int:
     for path in [*args.pack, *args.seen, args.val_pack]:
         if not path.is_file():
             parser.error(f"no pack at {path}")
+    if not args.alike_weight > 0 or not args.head_lr >= 0:
+        parser.error("--alike-weight takes a number above 0 and --head-lr one of 0 or more")
     if args.init is not None and not args.init.is_file():
         parser.error(f"no refiner weights at --init {args.init}")
     if not (args.model / DIT_FILE).is_file():
