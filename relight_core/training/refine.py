@@ -191,16 +191,15 @@ def item_tensors(pack: dict, items: list[tuple[int, int, int]], outputs: dict, s
 
 def input_floors(data: dict) -> torch.Tensor:
     """[N] the protocol's PSNR of each item's input against its target (the floor: how little the new light
-    changes the scene), after the per-channel scale fit on the mask (clipped to [0, 1]), over mask pixels."""
-    out = []
+    changes the scene; `evaluation.metrics.protocol_psnr`)."""
+    from relight_core.evaluation.metrics import protocol_psnr
+
+    floors = []
     for start in range(0, len(data["input"]), 256):
         part = slice(start, start + 256)
-        p, t = data["input"][part].float() / 255, data["target"][part].float() / 255
-        m = data["mask"][part][:, None].float()
-        scale = (m * p * t).sum((2, 3)) / (m * p * p).sum((2, 3)).clamp_min(1e-12)
-        error = (m * ((p * scale[..., None, None]).clamp(0, 1) - t) ** 2).sum((1, 2, 3)) / (m.sum((1, 2, 3)) * 3).clamp_min(1)
-        out.append(-10 * torch.log10(error.clamp_min(1e-10)))
-    return torch.cat(out)
+        inputs, targets, masks = _hwc(data["input"][part]), _hwc(data["target"][part]), data["mask"][part].numpy()
+        floors += [protocol_psnr(inputs[i:i + 1], targets[i:i + 1], masks[i:i + 1]) for i in range(len(masks))]
+    return torch.tensor(floors)
 
 
 def _hwc(images: torch.Tensor) -> np.ndarray:
@@ -590,7 +589,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--alike-weight", type=float, default=1.0,
                         help="draw the items whose input is within --alike-db of the target (the new light changes "
                              "little: the test split has twice the training share of them) this many times as often")
-    parser.add_argument("--alike-db", type=float, default=24.0)
+    parser.add_argument("--alike-db", type=float, default=24.0, help="see --alike-weight (dB; default 24)")
     parser.add_argument("--zero-head", action="store_true",
                         help="with --init: start the corrected clips' correction at zero (from a refiner trained for other clips)")
     parser.add_argument("--slot", choices=tuple(REFINER_SLOTS), default="refiner",
