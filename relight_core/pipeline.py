@@ -389,16 +389,20 @@ class Relighter(CostModel):
         size = self.spec.lighting_size or 32
         return lighting.downsample_panorama(panoramas, min(size, panoramas.shape[1], panoramas.shape[2]))
 
+    def _refiner_slots(self, lit: bool = True) -> list[str]:
+        """The slots ("refiner", "relit_refiner", in that order) whose refiner runs: the model has it and,
+        with `lit` False (a random light), it does not need the light."""
+        return [slot for slot in ("refiner", "relit_refiner")
+                if getattr(self, slot) is not None and (lit or not getattr(self, slot).config.lighting)]
+
     def clip_refiners(self, lit: bool = True) -> dict[str, str]:
         """{clip: the slot ("refiner", "relit_refiner") of the refiner whose result that clip ("relit",
         "albedo") is}: each refiner corrects its clips, and where both correct one the relit refiner's wins.
         With `lit` False (a random light) a refiner that sees the light is left out. A clip no refiner
         corrects is not listed."""
         owners = {}
-        for slot in ("refiner", "relit_refiner"):     # the later one wins
-            refiner = getattr(self, slot)
-            if refiner is not None and (lit or not refiner.config.lighting):
-                owners.update({clip: slot for clip in refiner.config.clips})
+        for slot in self._refiner_slots(lit):     # the later one wins
+            owners.update({clip: slot for clip in getattr(self, slot).config.clips})
         return {clip: owners[clip] for clip in ("relit", "albedo") if clip in owners}
 
     def _refined(self, mode: str, frames: np.ndarray, relit: np.ndarray, albedo: np.ndarray,
@@ -410,8 +414,7 @@ class Relighter(CostModel):
         the relit refiner's win where both correct one); a clip none corrects comes back as the first one's base.
         A refiner that sees the light is left out when there is none (a random light). Not in render
         mode, whose outputs do not start from an input photo."""
-        slots = [slot for slot in ("refiner", "relit_refiner") if getattr(self, slot) is not None
-                 and (light is not None or not getattr(self, slot).config.lighting)]
+        slots = self._refiner_slots(light is not None)
         refiners = [getattr(self, slot) for slot in slots]
         if not refiners or mode == "render":
             return self._smoothed(mode, frames, relit, albedo)
