@@ -13,6 +13,9 @@ where the base is the DiT's frames ("raw") or those after the model's offset fil
 configured for are corrected. A refiner with `lighting` also sees the target light: the camera-frame
 probe area-averaged to 8×8 (`light_features`), through an MLP that scales and shifts every channel of
 its middle and decoder levels (FiLM; zero at the start, so it begins as the refiner without light);
+with `light_detail` k the MLP also sees a k×k grid of the probe (where a sun is, to ~11° at 16×16),
+and with `film_encoder` the encoder levels are modulated too, so the light can steer what the network
+works out of the frames and not only how it combines it.
 one without it follows the probe only through the DiT. With `relit_gain` the relit correction is not
 added but multiplies the relit base as a smooth gain (one log gain per k×k-pixel cell, interpolated):
 it can brighten, darken and tint regions, and cannot draw an edge the base does not have or lift its
@@ -58,6 +61,9 @@ class RefinerConfig:
     clips: tuple[str, ...] = ("relit", "albedo")  # the frames it corrects; the others stay the base's
     flip_average: bool = False                    # average the correction with the mirror image's
     lighting: bool = False                        # sees the target light (FiLM from `light_features`)
+    light_detail: int = 0                         # with lighting: k > 0 also feeds the FiLM a k×k grid of
+                                                  # the probe (`Refiner.light`), beside the 8×8 one
+    film_encoder: bool = False                    # with lighting: FiLM on the encoder levels as well
     relit_gain: int = 0                           # 0: the relit correction is added; k > 0: it is a log gain
                                                   # on the relit base, averaged over k×k-pixel cells and
                                                   # smoothly interpolated (`corrected`): it can brighten,
@@ -79,6 +85,8 @@ class RefinerConfig:
         relit_gain = data.get("relit_gain", cls.relit_gain)
         strength = data.get("strength", cls.strength)
         input_mix = data.get("input_mix", cls.input_mix)
+        light_detail = data.get("light_detail", cls.light_detail)
+        film_encoder = data.get("film_encoder", cls.film_encoder)
 
         def whole(v, low, high):
             return isinstance(v, int) and not isinstance(v, bool) and low <= v <= high
@@ -90,14 +98,18 @@ class RefinerConfig:
                 or not isinstance(lighting, bool) or not whole(relit_gain, 0, 64)
                 or isinstance(strength, bool) or not isinstance(strength, (int, float))
                 or not 0 <= strength <= 2 or not isinstance(input_mix, bool)
-                or (input_mix and not (relit_gain and "relit" in clips))):
+                or (input_mix and not (relit_gain and "relit" in clips))
+                or not whole(light_detail, 0, 32) or 0 < light_detail < 2 or not isinstance(film_encoder, bool)
+                or ((light_detail or film_encoder) and lighting is not True)):
             raise ValueError(f"a refiner takes 1–6 widths from 1 to 1024, 0–8 blocks, base raw or filtered, "
                              f"clips relit and/or albedo, flip_average and lighting true or false, a "
-                             f"relit_gain cell of 0–64 pixels, a strength from 0 to 2 and input_mix true or "
-                             f"false (true only with a relit_gain cell and the relit clip); got {data!r}")
+                             f"relit_gain cell of 0–64 pixels, a strength from 0 to 2, input_mix true or "
+                             f"false (true only with a relit_gain cell and the relit clip), and with lighting a "
+                             f"light_detail grid of 0 or 2–32 and film_encoder true or false; got {data!r}")
         return cls(widths=tuple(widths), blocks=blocks, base=base,
                    clips=tuple(c for c in ("relit", "albedo") if c in clips), flip_average=flip_average,
-                   lighting=lighting, relit_gain=relit_gain, input_mix=input_mix, strength=float(strength))
+                   lighting=lighting, relit_gain=relit_gain, input_mix=input_mix, strength=float(strength),
+                   light_detail=light_detail, film_encoder=film_encoder)
 
     def to_dict(self) -> dict:
         out = {"widths": list(self.widths), "blocks": self.blocks, "base": self.base, "clips": list(self.clips)}
@@ -109,16 +121,25 @@ class RefinerConfig:
             out["relit_gain"] = self.relit_gain
         if self.input_mix:
             out["input_mix"] = True
+        if self.light_detail:
+            out["light_detail"] = self.light_detail
+        if self.film_encoder:
+            out["film_encoder"] = True
         if self.strength != 1.0:
             out["strength"] = self.strength
         return out
 
     @property
     def shape(self) -> tuple:
-        """What its weights depend on (widths, blocks, base, lighting, input_mix: its head's channels);
-        `clips`, `flip_average`, `relit_gain` and `strength` only change how they are used, so a run may
-        resume or start from weights with other ones."""
-        return self.widths, self.blocks, self.base, self.lighting, self.input_mix
+        """What its weights depend on (widths, blocks, base, lighting, input_mix: its head's channels,
+        light_detail and film_encoder: its FiLM's); `clips`, `flip_average`, `relit_gain` and `strength`
+        only change how they are used, so a run may resume or start from weights with other ones."""
+        return self.widths, self.blocks, self.base, self.lighting, self.input_mix, self.light_detail, self.film_encoder
+
+    @property
+    def light_features(self) -> int:
+        """The length of the FiLM's input (`Refiner.light`): the 8×8 grid's and the `light_detail` grid's."""
+        return LIGHT_FEATURES + 3 * self.light_detail ** 2 if self.lighting else 0
 
     @property
     def out_channels(self) -> int:
@@ -146,14 +167,14 @@ def network_input(base: str, inputs: torch.Tensor, relit: torch.Tensor, albedo: 
     return torch.cat(parts, dim=1), relit, albedo
 
 
-def light_features(panoramas: torch.Tensor) -> torch.Tensor:
-    """[B,3*8*8] lighting features of camera-frame panoramas [B,h,w,3] (linear radiance, any size; the
-    packs' 32² lighting grid or a frame-sized panorama alike): area averages on an 8×8 grid, divided by
-    their mean (the protocol fits each channel's scale, so only the light's shape and colour count),
-    then log(· + 0.05)."""
+def light_features(panoramas: torch.Tensor, grid: int = LIGHT_GRID) -> torch.Tensor:
+    """[B,3*grid*grid] lighting features of camera-frame panoramas [B,h,w,3] (linear radiance, any size;
+    the packs' 32² lighting grid or a frame-sized panorama alike): area averages on a grid×grid grid (8×8
+    by default), divided by their mean (the protocol fits each channel's scale, so only the light's shape
+    and colour count), then log(· + 0.05)."""
     if panoramas.dim() != 4 or panoramas.shape[-1] != 3:
         raise ValueError(f"light_features takes panoramas [B,h,w,3]; got {tuple(panoramas.shape)}")
-    grid = F.adaptive_avg_pool2d(panoramas.permute(0, 3, 1, 2).float(), LIGHT_GRID)
+    grid = F.adaptive_avg_pool2d(panoramas.permute(0, 3, 1, 2).float(), grid)
     grid = grid / grid.mean((1, 2, 3), keepdim=True).clamp_min(1e-6)
     return torch.log(grid.clamp_min(0) + 0.05).flatten(1)
 
@@ -185,16 +206,29 @@ class Refiner(nn.Module):
         self.head = nn.Conv2d(w[0], config.out_channels, 3, padding=1)
         nn.init.zeros_(self.head.weight)
         nn.init.zeros_(self.head.bias)
-        # FiLM: a scale and shift per channel of the middle and of each decoder level, deepest first
+        # FiLM: a scale and shift per channel of the middle and of each decoder level, deepest first, then
+        # (film_encoder) of each encoder level, shallowest first — after the others, so that the FiLM of a
+        # refiner without them is the first part of this one's (`training.refine.initial_weights`)
         self.film_sizes = [w[-1], *reversed(w[:-1])] if config.lighting else []
+        if config.film_encoder:
+            self.film_sizes += list(w[:-1])
         if config.lighting:
-            self.film = nn.Sequential(nn.Linear(LIGHT_FEATURES, 256), nn.SiLU(), nn.Linear(256, 2 * sum(self.film_sizes)))
+            self.film = nn.Sequential(nn.Linear(config.light_features, 256), nn.SiLU(),
+                                      nn.Linear(256, 2 * sum(self.film_sizes)))
             nn.init.zeros_(self.film[-1].weight)
             nn.init.zeros_(self.film[-1].bias)
 
+    def light(self, panoramas: torch.Tensor) -> torch.Tensor:
+        """The FiLM's input [B,config.light_features] for camera-frame panoramas [B,h,w,3]: `light_features`
+        on the 8×8 grid and, with `light_detail` k, on the k×k grid after it."""
+        features = light_features(panoramas)
+        if self.config.light_detail:
+            features = torch.cat([features, light_features(panoramas, self.config.light_detail)], dim=1)
+        return features
+
     def forward(self, x: torch.Tensor, light: torch.Tensor | None = None) -> torch.Tensor:
-        """Corrections [B,6|10,H,W] for network input `x`; `light` [B,192] (`light_features`) for a refiner
-        with lighting (required there, not taken otherwise)."""
+        """Corrections [B,6|10,H,W] for network input `x`; `light` [B,config.light_features] (`light`) for
+        a refiner with lighting (required there, not taken otherwise)."""
         if self.config.lighting != (light is not None):
             raise ValueError("a refiner with lighting takes the light's features, one without takes none")
         films = []
@@ -212,8 +246,11 @@ class Refiner(nn.Module):
 
         h = self.stem(x)
         skips = []
-        for enc, down in zip(self.enc, self.down):
+        encoder_films = 1 + len(self.enc)     # where the encoder's FiLM starts in `films`
+        for level, (enc, down) in enumerate(zip(self.enc, self.down)):
             h = enc(h)
+            if self.config.film_encoder:
+                h = modulated(h, encoder_films + level)
             skips.append(h)
             h = down(F.silu(h))
         h = modulated(self.mid(h), 0)
@@ -228,11 +265,11 @@ class Refiner(nn.Module):
         `flip_average` the mean of it and the mirror image's (under the mirrored light) flipped back."""
         if self.config.lighting and panoramas is None:
             raise ValueError("this refiner sees the light; pass the target's camera-frame panoramas")
-        light = light_features(panoramas) if self.config.lighting else None
+        light = self.light(panoramas) if self.config.lighting else None
         if not self.config.flip_average:
             return self.forward(x, light)
         if light is not None:
-            light = torch.cat([light, light_features(panoramas.flip(2))])
+            light = torch.cat([light, self.light(panoramas.flip(2))])
         both = self.forward(torch.cat([x, x.flip(-1)]), light)
         return (both[:len(x)] + both[len(x):].flip(-1)) / 2
 

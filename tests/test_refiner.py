@@ -401,6 +401,44 @@ def test_a_refiner_that_sees_the_light_starts_as_one_that_does_not_and_mirrors_w
         RefinerConfig.from_dict({"lighting": 1})
 
 
+def test_a_refiner_that_sees_more_of_the_light_starts_from_one_that_sees_less_and_tells_finer_suns_apart(tmp_path):
+    torch.manual_seed(7)
+    config = RefinerConfig(widths=(4, 8, 8), blocks=1, base="filtered", clips=("relit",), flip_average=True,
+                           lighting=True, relit_gain=4)
+    coarse = Refiner(config)
+    for parameter in coarse.parameters():
+        torch.nn.init.normal_(parameter, std=0.1)
+    save_file(coarse.state_dict(), str(tmp_path / "coarse.safetensors"))
+    fine_config = RefinerConfig.from_dict({**config.to_dict(), "light_detail": 16, "film_encoder": True})
+    assert fine_config.to_dict()["light_detail"] == 16 and fine_config.to_dict()["film_encoder"] is True
+    assert fine_config.shape != config.shape and fine_config.light_features == LIGHT_FEATURES + 3 * 16 * 16
+    fine = Refiner(fine_config)
+    assert "more of the light new" in refine.initial_weights(fine, tmp_path / "coarse.safetensors")
+    x = torch.rand(2, 15, 16, 20) * 2 - 1
+    light = torch.rand(2, 32, 32, 3) + 0.1
+    light[:, 8:10, 8:10] += 60.0                                                # a sun ...
+    shifted = light.clone()
+    shifted[:, 8:10, 8:10] -= 60.0
+    shifted[:, 10:12, 10:12] += 60.0                                            # ... moved within one 8×8 cell
+    assert torch.allclose(light_features(light), light_features(shifted), atol=1e-5)
+    with torch.no_grad():
+        # The same output as the refiner it starts from, whatever the light: the new weights are at zero.
+        assert torch.allclose(fine.correction(x, light), coarse.correction(x, light), atol=1e-6)
+        assert torch.allclose(fine.correction(x, shifted), coarse.correction(x, shifted), atol=1e-6)
+        # Once they have weight, the finer grid tells the two suns apart (the 8×8 one cannot) ...
+        torch.nn.init.normal_(fine.film[0].weight, std=0.1)
+        assert (fine.correction(x, light) - fine.correction(x, shifted)).abs().max() > 1e-4
+        # ... the encoder's FiLM counts, and the mirror symmetry still holds.
+        before = fine.correction(x, light)
+        fine.film[-1].weight[-2 * sum(config.widths[:-1]):] += 0.2
+        assert (fine.correction(x, light) - before).abs().max() > 1e-4
+        assert torch.allclose(fine.correction(x.flip(-1), light.flip(2)), fine.correction(x, light).flip(-1), atol=1e-5)
+    for bad in ({"light_detail": 16}, {"film_encoder": True}, {"lighting": True, "light_detail": 1},
+                {"lighting": True, "light_detail": 40}, {"lighting": True, "film_encoder": 1}):
+        with pytest.raises(ValueError, match="light_detail"):
+            RefinerConfig.from_dict(bad)
+
+
 def test_a_relit_refiner_beside_the_albedo_one_corrects_the_relit_frames_with_the_target_light(tmp_path):
     spec, dit, tok = residual_model()
     frames = np.random.default_rng(1).random((2, 32, 32, 3)).astype(np.float32)

@@ -50,7 +50,7 @@ from safetensors.torch import load_file, save_file
 from relight_core.checkpoint import CONFIG_FILE, DIT_FILE, load_model
 from relight_core.evaluation.metrics import protocol_psnr
 from relight_core.precision import resolve_precision
-from relight_core.refiner import REFINER_FILE, REFINER_SLOTS, Refiner, RefinerConfig, light_features, network_input
+from relight_core.refiner import REFINER_FILE, REFINER_SLOTS, Refiner, RefinerConfig, network_input
 from relight_core.tokenizer import build_tokenizer
 from relight_core.training.fast import make_batch, sample_relight
 from relight_core.training.pack import load_packs
@@ -286,7 +286,7 @@ def train(args: argparse.Namespace, log=print) -> dict:
     spec, _, _ = load_model(args.model, "cpu")
     config = RefinerConfig(widths=tuple(args.widths), blocks=args.blocks, base=args.base, clips=tuple(args.clips),
                            flip_average=args.flip_average, lighting=args.lighting, relit_gain=args.relit_gain,
-                           input_mix=args.input_mix)
+                           input_mix=args.input_mix, light_detail=args.light_detail, film_encoder=args.film_encoder)
     pack = load_packs(args.pack)
     if len(set(map(str, pack["names"]))) < len(pack["names"]):
         raise ValueError("the --pack files hold scenes of the same name (two render-data runs' scene_000000, say), "
@@ -377,7 +377,7 @@ def train(args: argparse.Namespace, log=print) -> dict:
             group["lr"] = args.lr * group["scale"] * min(1.0, (state["step"] + 1) / args.warmup)
         with torch.autocast("cpu", dtype=torch.bfloat16, enabled=autocast):
             delta = model(x.contiguous(memory_format=torch.channels_last),
-                          light_features(env) if config.lighting else None).float()
+                          model.light(env) if config.lighting else None).float()
         mask = get("mask")
         refined = dict(zip(("relit", "albedo"), model.corrected(delta, r, a, clamp=False, inputs=x[:, :3])))
         loss = sum(item_loss(refined[clip], targets[clip], mask) for clip in config.clips)
@@ -454,6 +454,20 @@ def initial_weights(refiner: Refiner, path: Path) -> str:
         state = {**state, "head.weight": torch.cat([head, fresh["head.weight"][6:]]),
                  "head.bias": torch.cat([state["head.bias"], fresh["head.bias"][6:]])}
         lit += ", with the input mix new"
+    film_in, film_out = state.get("film.0.weight"), state.get("film.2.weight")
+    fresh = refiner.state_dict()
+    if (refiner.config.lighting and film_in is not None and film_out is not None
+            and (film_in.shape[1] < fresh["film.0.weight"].shape[1] or film_out.shape[0] < fresh["film.2.weight"].shape[0])
+            and film_in.shape[0] == fresh["film.0.weight"].shape[0]):
+        # a refiner with less of the light: the finer grid's features (light_detail) come in with zero
+        # weight, the encoder's FiLM (film_encoder) at zero — the same output at the start
+        wider = torch.zeros_like(fresh["film.0.weight"])
+        wider[:, :film_in.shape[1]] = film_in
+        rows = film_out.shape[0]
+        out_w, out_b = torch.zeros_like(fresh["film.2.weight"]), torch.zeros_like(fresh["film.2.bias"])
+        out_w[:rows], out_b[:rows] = film_out, state["film.2.bias"]
+        state = {**state, "film.0.weight": wider, "film.2.weight": out_w, "film.2.bias": out_b}
+        lit += ", with more of the light new (at zero weight)"
     try:
         refiner.load_state_dict(state)
         return "as it is" + lit
@@ -580,6 +594,10 @@ def main(argv: list[str] | None = None) -> int:
                              "scene so), so that a refiner that sees the light leaves a photo alone under its own light")
     parser.add_argument("--lighting", action="store_true",
                         help="the refiner sees the target light (refiner.light_features through FiLM)")
+    parser.add_argument("--light-detail", type=int, default=0, metavar="K",
+                        help="with --lighting: the FiLM also sees the probe on a K×K grid (refiner.RefinerConfig.light_detail)")
+    parser.add_argument("--film-encoder", action="store_true",
+                        help="with --lighting: FiLM on the encoder levels too (refiner.RefinerConfig.film_encoder)")
     parser.add_argument("--relit-gain", type=int, default=0, metavar="CELL",
                         help="the relit correction is a smooth gain on the relit base, one value per CELL×CELL pixels "
                              "interpolated (refiner.RefinerConfig.relit_gain): it cannot draw an edge; 0 (default): added")
@@ -612,7 +630,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         RefinerConfig.from_dict({"widths": args.widths, "blocks": args.blocks, "base": args.base, "clips": args.clips,
                                  "flip_average": args.flip_average, "lighting": args.lighting,
-                                 "relit_gain": args.relit_gain, "input_mix": args.input_mix})
+                                 "relit_gain": args.relit_gain, "input_mix": args.input_mix,
+                                 "light_detail": args.light_detail, "film_encoder": args.film_encoder})
     except ValueError as error:
         parser.error(str(error))
     threads = torch.get_num_threads()
