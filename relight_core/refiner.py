@@ -167,14 +167,14 @@ def network_input(base: str, inputs: torch.Tensor, relit: torch.Tensor, albedo: 
     return torch.cat(parts, dim=1), relit, albedo
 
 
-def light_features(panoramas: torch.Tensor, grid: int = LIGHT_GRID) -> torch.Tensor:
-    """[B,3*grid*grid] lighting features of camera-frame panoramas [B,h,w,3] (linear radiance, any size;
-    the packs' 32² lighting grid or a frame-sized panorama alike): area averages on a grid×grid grid (8×8
-    by default), divided by their mean (the protocol fits each channel's scale, so only the light's shape
-    and colour count), then log(· + 0.05)."""
+def light_features(panoramas: torch.Tensor, cells: int = LIGHT_GRID) -> torch.Tensor:
+    """[B,3*cells*cells] lighting features of camera-frame panoramas [B,h,w,3] (linear radiance, any size;
+    the packs' 32² lighting grid or a frame-sized panorama alike): area averages on a cells×cells grid
+    (8×8 by default), divided by their mean (the protocol fits each channel's scale, so only the light's
+    shape and colour count), then log(· + 0.05)."""
     if panoramas.dim() != 4 or panoramas.shape[-1] != 3:
         raise ValueError(f"light_features takes panoramas [B,h,w,3]; got {tuple(panoramas.shape)}")
-    grid = F.adaptive_avg_pool2d(panoramas.permute(0, 3, 1, 2).float(), grid)
+    grid = F.adaptive_avg_pool2d(panoramas.permute(0, 3, 1, 2).float(), cells)
     grid = grid / grid.mean((1, 2, 3), keepdim=True).clamp_min(1e-6)
     return torch.log(grid.clamp_min(0) + 0.05).flatten(1)
 

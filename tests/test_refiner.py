@@ -433,6 +433,10 @@ def test_a_refiner_that_sees_more_of_the_light_starts_from_one_that_sees_less_an
         fine.film[-1].weight[-2 * sum(config.widths[:-1]):] += 0.2
         assert (fine.correction(x, light) - before).abs().max() > 1e-4
         assert torch.allclose(fine.correction(x.flip(-1), light.flip(2)), fine.correction(x, light).flip(-1), atol=1e-5)
+    # A refiner that sees the probe on another fine grid is not one that sees less of it: refused, not misread.
+    save_file({k: v.contiguous() for k, v in fine.state_dict().items()}, str(tmp_path / "fine.safetensors"))
+    with pytest.raises(ValueError, match="not a refiner of this shape"):
+        refine.initial_weights(Refiner(replace(fine_config, light_detail=12)), tmp_path / "fine.safetensors")
     for bad in ({"light_detail": 16}, {"film_encoder": True}, {"lighting": True, "light_detail": 1},
                 {"lighting": True, "light_detail": 40}, {"lighting": True, "film_encoder": 1}):
         with pytest.raises(ValueError, match="light_detail"):

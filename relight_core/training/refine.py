@@ -50,7 +50,7 @@ from safetensors.torch import load_file, save_file
 from relight_core.checkpoint import CONFIG_FILE, DIT_FILE, load_model
 from relight_core.evaluation.metrics import protocol_psnr
 from relight_core.precision import resolve_precision
-from relight_core.refiner import REFINER_FILE, REFINER_SLOTS, Refiner, RefinerConfig, network_input
+from relight_core.refiner import LIGHT_FEATURES, REFINER_FILE, REFINER_SLOTS, Refiner, RefinerConfig, network_input
 from relight_core.tokenizer import build_tokenizer
 from relight_core.training.fast import make_batch, sample_relight
 from relight_core.training.pack import load_packs
@@ -456,8 +456,11 @@ def initial_weights(refiner: Refiner, path: Path) -> str:
         lit += ", with the input mix new"
     film_in, film_out = state.get("film.0.weight"), state.get("film.2.weight")
     fresh = refiner.state_dict()
-    if (refiner.config.lighting and film_in is not None and film_out is not None
-            and (film_in.shape[1] < fresh["film.0.weight"].shape[1] or film_out.shape[0] < fresh["film.2.weight"].shape[0])
+    coarse_in = (LIGHT_FEATURES, fresh["film.0.weight"].shape[1]) if refiner.config.lighting else ()
+    coarse_out = (2 * sum(refiner.film_sizes[:len(refiner.config.widths)]), fresh["film.2.weight"].shape[0]) \
+        if refiner.config.lighting else ()
+    if (film_in is not None and film_out is not None and film_in.shape[1] in coarse_in
+            and film_out.shape[0] in coarse_out and (film_in.shape[1], film_out.shape[0]) != (coarse_in[1], coarse_out[1])
             and film_in.shape[0] == fresh["film.0.weight"].shape[0]):
         # a refiner with less of the light: the finer grid's features (light_detail) come in with zero
         # weight, the encoder's FiLM (film_encoder) at zero — the same output at the start
