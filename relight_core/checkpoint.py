@@ -25,7 +25,7 @@ from relight_core.arguments import MAX_ENSEMBLE
 from relight_core.dit import DIT_PRESETS, DiTConfig, JointDiT
 from relight_core.errors import InputError
 from relight_core.precision import check_precision
-from relight_core.refiner import REFINER_SLOTS, Refiner, RefinerConfig
+from relight_core.refiner import CONFIG_KEYS as REFINER_CONFIG_KEYS, REFINER_SLOTS, Refiner, RefinerConfig
 from relight_core.tokenizer import build_tokenizer
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
@@ -97,13 +97,9 @@ class ModelSpec:
             if kwargs.get(slot) is not None:
                 try:
                     kwargs[slot] = RefinerConfig.from_dict(kwargs[slot]).to_dict()
-                except (ValueError, TypeError, AttributeError):
+                except (ValueError, TypeError):
                     raise InputError(f"The model's config.json has {slot} {kwargs[slot]!r}; it takes "
-                                     '"widths" (1 to 6 whole numbers from 1 to 1024), "blocks" (0 to 8), "base" '
-                                     '("raw" or "filtered"), "clips" (["relit", "albedo"] or one of them), '
-                                     '"flip_average" and "lighting" (true or false), "relit_gain" (a cell of 0 to 64 '
-                                     'pixels), "input_mix" (true or false; true only with a relit_gain cell and the relit clip) and '
-                                     '"strength" (0 to 2), or leave it out.') from None
+                                     f"{REFINER_CONFIG_KEYS}, or leave it out.") from None
         return cls(**kwargs)
 
 

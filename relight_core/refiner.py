@@ -50,6 +50,11 @@ LIGHT_FEATURES = 3 * LIGHT_GRID * LIGHT_GRID
 GAIN_EPSILON = 0.02                            # `relit_gain`: black plus this is what the gain multiplies
 MIX_OFFSET = 5.0                               # `input_mix`: the input's weight is sigmoid(MIX_SCALE·z − MIX_OFFSET):
 MIX_SCALE = 8.0                                # ~0.007 at z = 0, and the logit learns as fast as a gain would
+CONFIG_KEYS = ('"widths" (1 to 6 whole numbers from 1 to 1024), "blocks" (0 to 8), "base" ("raw" or "filtered"), '
+               '"clips" (["relit", "albedo"] or one of them), "flip_average" and "lighting" (true or false), '
+               '"relit_gain" (a cell of 0 to 64 pixels), "input_mix" (true or false; true only with a relit_gain '
+               'cell and the relit clip), "light_detail" (0, or a grid of 2 to 32 with "lighting" true), '
+               '"film_encoder" (true or false; true only with "lighting" true) and "strength" (0 to 2)')
 
 
 @dataclass(frozen=True)
@@ -78,6 +83,9 @@ class RefinerConfig:
 
     @classmethod
     def from_dict(cls, data: dict) -> "RefinerConfig":
+        """The config of a config.json entry (`to_dict`'s form), or ValueError naming what it takes (`CONFIG_KEYS`)."""
+        if not isinstance(data, dict):
+            raise ValueError(f"a refiner is a JSON object of {CONFIG_KEYS}; got {data!r}")
         widths, blocks = data.get("widths", list(cls.widths)), data.get("blocks", cls.blocks)
         base, clips = data.get("base", cls.base), data.get("clips", list(cls.clips))
         flip_average = data.get("flip_average", cls.flip_average)
@@ -101,11 +109,7 @@ class RefinerConfig:
                 or (input_mix and not (relit_gain and "relit" in clips))
                 or not whole(light_detail, 0, 32) or 0 < light_detail < 2 or not isinstance(film_encoder, bool)
                 or ((light_detail or film_encoder) and lighting is not True)):
-            raise ValueError(f"a refiner takes 1–6 widths from 1 to 1024, 0–8 blocks, base raw or filtered, "
-                             f"clips relit and/or albedo, flip_average and lighting true or false, a "
-                             f"relit_gain cell of 0–64 pixels, a strength from 0 to 2, input_mix true or "
-                             f"false (true only with a relit_gain cell and the relit clip), and with lighting a "
-                             f"light_detail grid of 0 or 2–32 and film_encoder true or false; got {data!r}")
+            raise ValueError(f"a refiner takes {CONFIG_KEYS}; got {data!r}")
         return cls(widths=tuple(widths), blocks=blocks, base=base,
                    clips=tuple(c for c in ("relit", "albedo") if c in clips), flip_average=flip_average,
                    lighting=lighting, relit_gain=relit_gain, input_mix=input_mix, strength=float(strength),

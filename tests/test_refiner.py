@@ -112,7 +112,8 @@ def test_a_refiner_in_config_json_round_trips_and_a_bad_one_or_a_missing_file_is
     assert ModelSpec.from_json(json.loads(json.dumps(data))).refiner == SMALL.to_dict()
     assert RefinerConfig.from_dict({"clips": ["albedo"]}).clips == ("albedo",)
     for bad in ({"widths": []}, {"widths": [8, -1]}, {"widths": [8], "blocks": 2.5}, {"base": "sharp"}, "wide", {"clips": []}, {"clips": ["shadows"]}, {"clips": [["relit"]]},
-                {"widths": [10 ** 6]}, {"relit_gain": -4}, {"relit_gain": 2.5}, {"strength": 3}):
+                {"widths": [10 ** 6]}, {"relit_gain": -4}, {"relit_gain": 2.5}, {"strength": 3},
+                {"light_detail": 16}, {"lighting": True, "light_detail": 64}, {"film_encoder": True}):
         with pytest.raises(InputError, match='has refiner .*; it takes "widths".*"relit_gain".*"strength"'):
             ModelSpec.from_json({**data, "refiner": bad})
     folder = tmp_path / "model"

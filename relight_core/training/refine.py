@@ -192,8 +192,6 @@ def item_tensors(pack: dict, items: list[tuple[int, int, int]], outputs: dict, s
 def input_floors(data: dict) -> torch.Tensor:
     """[N] the protocol's PSNR of each item's input against its target (the floor: how little the new light
     changes the scene; `evaluation.metrics.protocol_psnr`)."""
-    from relight_core.evaluation.metrics import protocol_psnr
-
     floors = []
     for start in range(0, len(data["input"]), 256):
         part = slice(start, start + 256)
@@ -284,9 +282,7 @@ def train(args: argparse.Namespace, log=print) -> dict:
     out.mkdir(parents=True, exist_ok=True)
     torch.set_num_threads(args.threads)
     spec, _, _ = load_model(args.model, "cpu")
-    config = RefinerConfig(widths=tuple(args.widths), blocks=args.blocks, base=args.base, clips=tuple(args.clips),
-                           flip_average=args.flip_average, lighting=args.lighting, relit_gain=args.relit_gain,
-                           input_mix=args.input_mix, light_detail=args.light_detail, film_encoder=args.film_encoder)
+    config = flag_config(args)
     pack = load_packs(args.pack)
     if len(set(map(str, pack["names"]))) < len(pack["names"]):
         raise ValueError("the --pack files hold scenes of the same name (two render-data runs' scene_000000, say), "
@@ -414,6 +410,14 @@ def train(args: argparse.Namespace, log=print) -> dict:
     return best
 
 
+def flag_config(args: argparse.Namespace) -> RefinerConfig:
+    """The refiner the flags describe (strength 1: training always uses it), checked by `RefinerConfig.from_dict`."""
+    return RefinerConfig.from_dict({"widths": args.widths, "blocks": args.blocks, "base": args.base, "clips": args.clips,
+                                    "flip_average": args.flip_average, "lighting": args.lighting,
+                                    "relit_gain": args.relit_gain, "input_mix": args.input_mix,
+                                    "light_detail": args.light_detail, "film_encoder": args.film_encoder})
+
+
 def refiner_optimizer(model: Refiner, lr: float, head_lr: float = 1.0, saved: dict | None = None
                       ) -> torch.optim.AdamW:
     """AdamW over `model`'s weights, its last layer (`head`) at `head_lr` times `lr`: each group's "scale",
@@ -442,34 +446,21 @@ def initial_weights(refiner: Refiner, path: Path) -> str:
     except Exception as exc:  # safetensors raises its own error types for corrupt headers
         raise ValueError(f"--init {path} is not a readable safetensors file ({exc})") from exc
     lit = ""
+    fresh = refiner.state_dict()
     if refiner.config.lighting and not any(key.startswith("film.") for key in state):
         # a refiner without the light: it gains the FiLM, which starts at zero (the same output)
-        state = {**state, **{k: v for k, v in refiner.state_dict().items() if k.startswith("film.")}}
+        state = {**state, **{k: v for k, v in fresh.items() if k.startswith("film.")}}
         lit = ", with the light's FiLM new"
     head = state.get("head.weight")
     if refiner.config.input_mix and head is not None and head.shape[0] == 6:
         # a refiner without the input mix: its head gains the mix's channels, at zero (the input's weight
         # starts at sigmoid(−5), the output nearly the same)
-        fresh = refiner.state_dict()
         state = {**state, "head.weight": torch.cat([head, fresh["head.weight"][6:]]),
                  "head.bias": torch.cat([state["head.bias"], fresh["head.bias"][6:]])}
         lit += ", with the input mix new"
-    film_in, film_out = state.get("film.0.weight"), state.get("film.2.weight")
-    fresh = refiner.state_dict()
-    coarse_in = (LIGHT_FEATURES, fresh["film.0.weight"].shape[1]) if refiner.config.lighting else ()
-    coarse_out = (2 * sum(refiner.film_sizes[:len(refiner.config.widths)]), fresh["film.2.weight"].shape[0]) \
-        if refiner.config.lighting else ()
-    if (film_in is not None and film_out is not None and film_in.shape[1] in coarse_in
-            and film_out.shape[0] in coarse_out and (film_in.shape[1], film_out.shape[0]) != (coarse_in[1], coarse_out[1])
-            and film_in.shape[0] == fresh["film.0.weight"].shape[0]):
-        # a refiner with less of the light: the finer grid's features (light_detail) come in with zero
-        # weight, the encoder's FiLM (film_encoder) at zero — the same output at the start
-        wider = torch.zeros_like(fresh["film.0.weight"])
-        wider[:, :film_in.shape[1]] = film_in
-        rows = film_out.shape[0]
-        out_w, out_b = torch.zeros_like(fresh["film.2.weight"]), torch.zeros_like(fresh["film.2.bias"])
-        out_w[:rows], out_b[:rows] = film_out, state["film.2.bias"]
-        state = {**state, "film.0.weight": wider, "film.2.weight": out_w, "film.2.bias": out_b}
+    widened = widened_film(state, refiner, fresh)
+    if widened is not None:
+        state = widened
         lit += ", with more of the light new (at zero weight)"
     try:
         refiner.load_state_dict(state)
@@ -488,6 +479,28 @@ def initial_weights(refiner: Refiner, path: Path) -> str:
         raise ValueError(f"--init {path} is not a refiner of this shape nor one with a level fewer or fewer blocks; "
                          "give the --widths, --blocks and --base it was trained with (or those plus one more width, "
                          "or more --blocks)") from exc
+
+
+def widened_film(state: dict[str, torch.Tensor], refiner: Refiner, fresh: dict[str, torch.Tensor]
+                 ) -> dict[str, torch.Tensor] | None:
+    """The weights of a refiner that sees less of the light than `refiner` (the 8×8 grid only, and/or no FiLM on
+    its encoder), its FiLM widened into `refiner`'s so that the output is unchanged: its weights first, the
+    `light_detail` grid's inputs and the encoder's scale and shift rows at zero. None for any other state (one
+    that already fits, or one with another fine grid: that is not less of the light, and must not be misread)."""
+    film_in, film_out = state.get("film.0.weight"), state.get("film.2.weight")
+    if not refiner.config.lighting or film_in is None or film_out is None:
+        return None
+    full_in, full_out = fresh["film.0.weight"].shape[1], fresh["film.2.weight"].shape[0]
+    decoder_rows = 2 * sum(refiner.film_sizes[:len(refiner.config.widths)])    # the middle's and the decoder's
+    if (film_in.shape[1] not in (LIGHT_FEATURES, full_in) or film_out.shape[0] not in (decoder_rows, full_out)
+            or (film_in.shape[1], film_out.shape[0]) == (full_in, full_out)
+            or film_in.shape[0] != fresh["film.0.weight"].shape[0] or film_out.shape[1] != fresh["film.2.weight"].shape[1]):
+        return None
+    first, last = torch.zeros_like(fresh["film.0.weight"]), torch.zeros_like(fresh["film.2.weight"])
+    bias = torch.zeros_like(fresh["film.2.bias"])
+    first[:, :film_in.shape[1]] = film_in
+    last[:film_out.shape[0]], bias[:film_out.shape[0]] = film_out, state["film.2.bias"]
+    return {**state, "film.0.weight": first, "film.2.weight": last, "film.2.bias": bias}
 
 
 def grown_state(state: dict[str, torch.Tensor], refiner: Refiner) -> dict[str, torch.Tensor]:
@@ -631,10 +644,7 @@ def main(argv: list[str] | None = None) -> int:
     if not (args.model / DIT_FILE).is_file():
         parser.error(f"--model {args.model} holds no {DIT_FILE}; give a model folder")
     try:
-        RefinerConfig.from_dict({"widths": args.widths, "blocks": args.blocks, "base": args.base, "clips": args.clips,
-                                 "flip_average": args.flip_average, "lighting": args.lighting,
-                                 "relit_gain": args.relit_gain, "input_mix": args.input_mix,
-                                 "light_detail": args.light_detail, "film_encoder": args.film_encoder})
+        flag_config(args)
     except ValueError as error:
         parser.error(str(error))
     threads = torch.get_num_threads()
