@@ -15,8 +15,15 @@ probe area-averaged to 8×8 (`light_features`), through an MLP that scales and s
 its middle and decoder levels (FiLM; zero at the start, so it begins as the refiner without light);
 with `light_detail` k the MLP also sees a k×k grid of the probe (where a sun is, to ~11° at 16×16),
 and with `film_encoder` the encoder levels are modulated too, so the light can steer what the network
-works out of the frames and not only how it combines it.
-one without it follows the probe only through the DiT. With `relit_gain` the relit correction is not
+works out of the frames and not only how it combines it. With `transport` k (and a relit gain) the relit log
+gain also gets the log of a shading that is *linear in the light*, as light transport is: each pixel of the
+1/4-size decoder level (a shallower one in a refiner of fewer levels) weights the probe's k×k cells (a softmax of
+a 1×1 layer's logits; which directions light that pixel, and how much) and its shading is that weighted mean of
+the probe, each channel over its mean over the cells. Its weights start uniform, a shading of 1: the refiner it
+starts from, unchanged. With `reshade` the term is instead gate·(log transport shading − log own shading), the
+own shading the base's relit ÷ albedo averaged to that level, the gate a 1×1 layer's (zero at the start): where
+the gate is 1 the base's shading is swapped for the transport one. A refiner
+without lighting follows the probe only through the DiT. With `relit_gain` the relit correction is not
 added but multiplies the relit base as a smooth gain (one log gain per k×k-pixel cell, interpolated):
 it can brighten, darken and tint regions, and cannot draw an edge the base does not have or lift its
 blacks much — an added correction did both on a photo unlike the training scenes (docs/QUALITY.md).
@@ -25,7 +32,10 @@ under a gain of its own: where the light changes little, or only by a smooth rat
 detail (texture, outlines) can come through instead of the DiT's softer frame.
 Its last layer starts at zero, so an untrained refiner returns its base unchanged. With `flip_average`
 its correction is the mean of the one for the frames and the one for their mirror image flipped back
-(two passes, one batch; the mirrored pass sees the mirrored light, u → 1 − u).
+(two passes, one batch; the mirrored pass sees the mirrored light, u → 1 − u). With `colour_average` it is
+the mean over the six orders of the colour channels — the frames' and the light's reordered alike, each
+correction's put back — as the training's colour permutation (`refine --permute-colours`) says a scene with
+its colours swapped is as plausible a one (six times the passes).
 
 A model folder holds up to two: `refiner.safetensors` (config.json's "refiner" entry) and
 `relit_refiner.safetensors` ("relit_refiner"), each correcting its clips from the same frames. The
@@ -36,6 +46,7 @@ frozen DiT's outputs.
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass
 
 import torch
@@ -54,7 +65,10 @@ CONFIG_KEYS = ('"widths" (1 to 6 whole numbers from 1 to 1024), "blocks" (0 to 8
                '"clips" (["relit", "albedo"] or one of them), "flip_average" and "lighting" (true or false), '
                '"relit_gain" (a cell of 0 to 64 pixels), "input_mix" (true or false; true only with a relit_gain '
                'cell and the relit clip), "light_detail" (0, or a grid of 2 to 32 with "lighting" true), '
-               '"film_encoder" (true or false; true only with "lighting" true) and "strength" (0 to 2)')
+               '"film_encoder" (true or false; true only with "lighting" true), "transport" (0, or a grid of 2 to 32 '
+               'with "lighting" true, a relit_gain cell and the relit clip), "reshade" (true or false; true only with '
+               '"transport"), "colour_average" (true or false) and "strength" (0 to 2)')
+TRANSPORT_FLOOR = 1e-3                         # `transport`: the shading ratio is floored here before its log
 
 
 @dataclass(frozen=True)
@@ -69,6 +83,11 @@ class RefinerConfig:
     light_detail: int = 0                         # with lighting: k > 0 also feeds the FiLM a k×k grid of
                                                   # the probe (`Refiner.light`), beside the 8×8 one
     film_encoder: bool = False                    # with lighting: FiLM on the encoder levels as well
+    transport: int = 0                            # with lighting and relit_gain: k > 0 adds to the relit log gain
+                                                  # the log of a shading *linear in the light*: per pixel, a
+                                                  # weighted mean of the probe's k×k cells (`Refiner.forward`)
+    reshade: bool = False                         # with transport: the term is gated, per pixel, and replaces the
+                                                  # base's own shading (relit ÷ albedo) by the transport one
     relit_gain: int = 0                           # 0: the relit correction is added; k > 0: it is a log gain
                                                   # on the relit base, averaged over k×k-pixel cells and
                                                   # smoothly interpolated (`corrected`): it can brighten,
@@ -76,6 +95,8 @@ class RefinerConfig:
     input_mix: bool = False                       # with relit_gain: the relit frame is a smooth per-cell mix of
                                                   # the gained base and the input under a gain of its own
                                                   # (`corrected`): the input's detail where it holds
+    colour_average: bool = False                  # average the correction over the six orders of the colour
+                                                  # channels (of the frames and the light alike), put back
     strength: float = 1.0                         # scales its corrections (the log gain with relit_gain):
                                                   # chosen on held-out scenes by `training.calibrate
                                                   # --strengths`, where a correction learnt on training
@@ -95,6 +116,9 @@ class RefinerConfig:
         input_mix = data.get("input_mix", cls.input_mix)
         light_detail = data.get("light_detail", cls.light_detail)
         film_encoder = data.get("film_encoder", cls.film_encoder)
+        transport = data.get("transport", cls.transport)
+        reshade = data.get("reshade", cls.reshade)
+        colour_average = data.get("colour_average", cls.colour_average)
 
         def whole(v, low, high):
             return isinstance(v, int) and not isinstance(v, bool) and low <= v <= high
@@ -108,12 +132,16 @@ class RefinerConfig:
                 or not 0 <= strength <= 2 or not isinstance(input_mix, bool)
                 or (input_mix and not (relit_gain and "relit" in clips))
                 or not whole(light_detail, 0, 32) or 0 < light_detail < 2 or not isinstance(film_encoder, bool)
-                or ((light_detail or film_encoder) and lighting is not True)):
+                or ((light_detail or film_encoder) and lighting is not True)
+                or not whole(transport, 0, 32) or 0 < transport < 2
+                or (transport and not (lighting is True and relit_gain and "relit" in clips))
+                or not isinstance(reshade, bool) or (reshade and not transport) or not isinstance(colour_average, bool)):
             raise ValueError(f"a refiner takes {CONFIG_KEYS}; got {data!r}")
         return cls(widths=tuple(widths), blocks=blocks, base=base,
                    clips=tuple(c for c in ("relit", "albedo") if c in clips), flip_average=flip_average,
                    lighting=lighting, relit_gain=relit_gain, input_mix=input_mix, strength=float(strength),
-                   light_detail=light_detail, film_encoder=film_encoder)
+                   light_detail=light_detail, film_encoder=film_encoder, transport=transport,
+                   reshade=reshade, colour_average=colour_average)
 
     def to_dict(self) -> dict:
         out = {"widths": list(self.widths), "blocks": self.blocks, "base": self.base, "clips": list(self.clips)}
@@ -129,6 +157,12 @@ class RefinerConfig:
             out["light_detail"] = self.light_detail
         if self.film_encoder:
             out["film_encoder"] = True
+        if self.transport:
+            out["transport"] = self.transport
+        if self.reshade:
+            out["reshade"] = True
+        if self.colour_average:
+            out["colour_average"] = True
         if self.strength != 1.0:
             out["strength"] = self.strength
         return out
@@ -136,9 +170,10 @@ class RefinerConfig:
     @property
     def shape(self) -> tuple:
         """What its weights depend on (widths, blocks, base, lighting, input_mix: its head's channels,
-        light_detail and film_encoder: its FiLM's); `clips`, `flip_average`, `relit_gain` and `strength`
+        light_detail and film_encoder: its FiLM's, transport: its transport layer); `clips`, `flip_average`, `relit_gain` and `strength`
         only change how they are used, so a run may resume or start from weights with other ones."""
-        return self.widths, self.blocks, self.base, self.lighting, self.input_mix, self.light_detail, self.film_encoder
+        return (self.widths, self.blocks, self.base, self.lighting, self.input_mix, self.light_detail,
+                self.film_encoder, self.transport, self.reshade)
 
     @property
     def light_features(self) -> int:
@@ -171,6 +206,14 @@ def network_input(base: str, inputs: torch.Tensor, relit: torch.Tensor, albedo: 
     return torch.cat(parts, dim=1), relit, albedo
 
 
+def transport_light(panoramas: torch.Tensor, cells: int) -> torch.Tensor:
+    """[B,3,cells²] the probe for `transport`: camera-frame panoramas [B,h,w,3] area-averaged on a cells×cells
+    grid, each channel divided by its mean over the cells (so a uniform weighting of them gives 1: the
+    colour of the whole light is the protocol's scale fit's, what varies from place to place is shading)."""
+    grid = F.adaptive_avg_pool2d(panoramas.permute(0, 3, 1, 2).float(), cells).clamp_min(0).flatten(2)
+    return grid / grid.mean(2, keepdim=True).clamp_min(1e-6)
+
+
 def light_features(panoramas: torch.Tensor, cells: int = LIGHT_GRID) -> torch.Tensor:
     """[B,3*cells*cells] lighting features of camera-frame panoramas [B,h,w,3] (linear radiance, any size;
     the packs' 32² lighting grid or a frame-sized panorama alike): area averages on a cells×cells grid
@@ -181,6 +224,18 @@ def light_features(panoramas: torch.Tensor, cells: int = LIGHT_GRID) -> torch.Te
     grid = F.adaptive_avg_pool2d(panoramas.permute(0, 3, 1, 2).float(), cells)
     grid = grid / grid.mean((1, 2, 3), keepdim=True).clamp_min(1e-6)
     return torch.log(grid.clamp_min(0) + 0.05).flatten(1)
+
+
+def _reordered(images: torch.Tensor, order) -> torch.Tensor:
+    """`images` [B,C,H,W] with the channels of every whole RGB triple reordered (new channel j of a triple is
+    its old channel order[j]); a channel past the last triple (the input mix's logit) stays."""
+    triples = images.shape[1] // 3
+    index = [3 * t + o for t in range(triples) for o in order] + list(range(3 * triples, images.shape[1]))
+    return images[:, index]
+
+
+def _inverse(order) -> list[int]:
+    return sorted(range(len(order)), key=lambda j: order[j])
 
 
 class _Block(nn.Module):
@@ -208,6 +263,17 @@ class Refiner(nn.Module):
         self.up = nn.ModuleList(nn.Conv2d(b + a, a, 1) for a, b in zip(w[:-1], w[1:]))
         self.dec = nn.ModuleList(nn.Sequential(*[_Block(c) for _ in range(config.blocks)]) for c in w[:-1])
         self.head = nn.Conv2d(w[0], config.out_channels, 3, padding=1)
+        if config.transport:
+            # per pixel of the 1/4-size decoder level, logits of a distribution over the probe's cells: zero, so
+            # uniform, so a shading of exactly 1 at the start (the same output as without it)
+            self.transport_level = min(2, len(w) - 2)
+            self.transport_head = nn.Conv2d(w[self.transport_level], config.transport ** 2, 1)
+            nn.init.zeros_(self.transport_head.weight)
+            nn.init.zeros_(self.transport_head.bias)
+        if config.reshade:
+            self.transport_gate = nn.Conv2d(w[self.transport_level], 1, 1)     # zero: no change at the start
+            nn.init.zeros_(self.transport_gate.weight)
+            nn.init.zeros_(self.transport_gate.bias)
         nn.init.zeros_(self.head.weight)
         nn.init.zeros_(self.head.bias)
         # FiLM: a scale and shift per channel of the middle and of each decoder level, deepest first, then
@@ -224,20 +290,28 @@ class Refiner(nn.Module):
 
     def light(self, panoramas: torch.Tensor) -> torch.Tensor:
         """The FiLM's input [B,config.light_features] for camera-frame panoramas [B,h,w,3]: `light_features`
-        on the 8×8 grid and, with `light_detail` k, on the k×k grid after it."""
+        on the 8×8 grid and, with `light_detail` k, on the k×k grid after it; with `transport` k the probe's
+        cells for it follow (`transport_light`, flattened: [B,3k²] more)."""
         features = light_features(panoramas)
         if self.config.light_detail:
             features = torch.cat([features, light_features(panoramas, self.config.light_detail)], dim=1)
+        if self.config.transport:
+            features = torch.cat([features, transport_light(panoramas, self.config.transport).flatten(1)], dim=1)
         return features
 
     def forward(self, x: torch.Tensor, light: torch.Tensor | None = None) -> torch.Tensor:
-        """Corrections [B,6|10,H,W] for network input `x`; `light` [B,config.light_features] (`light`) for
-        a refiner with lighting (required there, not taken otherwise)."""
+        """Corrections [B,6|10,H,W] for network input `x`; `light` (`light`: [B,config.light_features], and with
+        `transport` k the probe's [3,k²] cells after them) for a refiner with lighting (required there, not taken
+        otherwise)."""
         if self.config.lighting != (light is not None):
             raise ValueError("a refiner with lighting takes the light's features, one without takes none")
-        films = []
+        films, probe = [], None
         if light is not None:
-            params, at = self.film(light.to(x.device)).float(), 0
+            light = light.to(x.device)
+            if self.config.transport:
+                light, probe = light[:, :self.config.light_features], light[:, self.config.light_features:]
+                probe = probe.float().view(len(x), 3, self.config.transport ** 2)
+            params, at = self.film(light).float(), 0
             for size in self.film_sizes:
                 films.append((params[:, at:at + size, None, None], params[:, at + size:at + 2 * size, None, None]))
                 at += 2 * size
@@ -261,7 +335,25 @@ class Refiner(nn.Module):
         for level, i in enumerate(reversed(range(len(skips))), start=1):
             h = F.interpolate(h, size=skips[i].shape[-2:], mode="bilinear", align_corners=False)
             h = modulated(self.dec[i](self.up[i](torch.cat([h, skips[i]], dim=1))), level)
-        return self.head(F.silu(h))
+            if probe is not None and i == self.transport_level:
+                weights = torch.softmax(self.transport_head(F.silu(h)).float(), dim=1)      # [B,K,h,w]
+                shading = torch.einsum("bkyx,bck->bcyx", weights, probe).clamp_min(TRANSPORT_FLOOR)
+                log_shading = torch.log(shading)
+                if self.config.reshade:
+                    # the base's own shading, relit ÷ albedo per channel at this level's size, swapped for the
+                    # transport one where the gate says so
+                    relit_base, albedo_base = (x[:, 9:12], x[:, 12:15]) if self.config.base == "filtered" else (x[:, 3:6], x[:, 6:9])
+                    eps = 2 * GAIN_EPSILON
+                    own = F.adaptive_avg_pool2d(torch.log((relit_base.float() + 1 + eps) / (albedo_base.float() + 1 + eps)),
+                                                h.shape[-2:])
+                    log_shading = self.transport_gate(F.silu(h)).float() * (log_shading - own)
+        out = self.head(F.silu(h))
+        if probe is not None:
+            # the transport term: log of each pixel's weighted mean of the probe's cells (linear in the light;
+            # the weights, from the frames and the light's FiLM, say which directions light that pixel)
+            log_shading = F.interpolate(log_shading, size=out.shape[-2:], mode="bilinear", align_corners=False)
+            out = torch.cat([out[:, :3] + log_shading.to(out.dtype), out[:, 3:]], dim=1)
+        return out
 
     def correction(self, x: torch.Tensor, panoramas: torch.Tensor | None = None) -> torch.Tensor:
         """The corrections [B,6|10,H,W] for network input `x` [B,9|15,H,W] (`network_input`) and, for a
@@ -269,6 +361,16 @@ class Refiner(nn.Module):
         `flip_average` the mean of it and the mirror image's (under the mirrored light) flipped back."""
         if self.config.lighting and panoramas is None:
             raise ValueError("this refiner sees the light; pass the target's camera-frame panoramas")
+        if self.config.colour_average:
+            # each order of the colour channels in one batch, each correction's channels put back, averaged
+            orders = list(itertools.permutations(range(3)))
+            xs = torch.cat([_reordered(x, order) for order in orders])
+            lights = torch.cat([panoramas[..., list(order)] for order in orders]) if panoramas is not None else None
+            out = self._mirrored(xs, lights).split(len(x))
+            return sum(_reordered(o, _inverse(order)) for o, order in zip(out, orders)) / len(orders)
+        return self._mirrored(x, panoramas)
+
+    def _mirrored(self, x: torch.Tensor, panoramas: torch.Tensor | None) -> torch.Tensor:
         light = self.light(panoramas) if self.config.lighting else None
         if not self.config.flip_average:
             return self.forward(x, light)

@@ -1,6 +1,7 @@
 """The default model's detail refiner: what it adds in the Relighter, its config and weights, and its
 training on a frozen DiT's outputs (relight_core/refiner.py, relight_core/training/refine.py)."""
 
+import itertools
 import json
 from dataclasses import replace
 
@@ -113,8 +114,10 @@ def test_a_refiner_in_config_json_round_trips_and_a_bad_one_or_a_missing_file_is
     assert RefinerConfig.from_dict({"clips": ["albedo"]}).clips == ("albedo",)
     for bad in ({"widths": []}, {"widths": [8, -1]}, {"widths": [8], "blocks": 2.5}, {"base": "sharp"}, "wide", {"clips": []}, {"clips": ["shadows"]}, {"clips": [["relit"]]},
                 {"widths": [10 ** 6]}, {"relit_gain": -4}, {"relit_gain": 2.5}, {"strength": 3},
-                {"light_detail": 16}, {"lighting": True, "light_detail": 64}, {"film_encoder": True}):
-        with pytest.raises(InputError, match='has refiner .*; it takes "widths".*"relit_gain".*"strength"'):
+                {"light_detail": 16}, {"lighting": True, "light_detail": 64}, {"film_encoder": True},
+                {"transport": 8}, {"reshade": True}, {"colour_average": "yes"}):
+        with pytest.raises(InputError, match='has refiner .*; it takes "widths".*"relit_gain".*"transport".*"reshade".*'
+                                             '"colour_average".*"strength"'):
             ModelSpec.from_json({**data, "refiner": bad})
     folder = tmp_path / "model"
     folder.mkdir()
@@ -442,6 +445,132 @@ def test_a_refiner_that_sees_more_of_the_light_starts_from_one_that_sees_less_an
                 {"lighting": True, "light_detail": 40}, {"lighting": True, "film_encoder": 1}):
         with pytest.raises(ValueError, match="light_detail"):
             RefinerConfig.from_dict(bad)
+
+
+def test_a_transport_refiner_starts_as_one_without_its_term_a_weighted_mean_of_the_probes_cells_that_learns_the_light(tmp_path):
+    torch.manual_seed(8)
+    config = RefinerConfig(widths=(4, 8, 8), blocks=1, base="filtered", clips=("relit",), lighting=True, relit_gain=4)
+    plain = Refiner(config)
+    for parameter in plain.parameters():
+        torch.nn.init.normal_(parameter, std=0.1)
+    save_file(plain.state_dict(), str(tmp_path / "plain.safetensors"))
+    transport_config = RefinerConfig.from_dict({**config.to_dict(), "transport": 4})
+    assert transport_config.to_dict()["transport"] == 4 and transport_config.shape != config.shape
+    lit = Refiner(transport_config)
+    assert "transport term new" in refine.initial_weights(lit, tmp_path / "plain.safetensors")
+    x = torch.rand(2, 15, 16, 20) * 2 - 1
+    light = torch.rand(2, 32, 32, 3) + 0.1
+    light[0, 4:8, 20:24] += torch.tensor([60.0, 30.0, 5.0])                       # a warm sun in one of 4×4 cells
+    with torch.no_grad():
+        before = plain.correction(x, light)
+        # The same output as the refiner it starts from: uniform weights, a shading of exactly 1.
+        assert torch.allclose(lit.correction(x, light), before, atol=1e-6)
+        # Every pixel weighting one cell alone: the log gain gains that cell's light over the probe's mean, per
+        # channel (the sun's cell for the first item: warm, bright), and nothing else changes.
+        lit.transport_head.bias[0 * 4 + 2] = 60.0          # row 0, column 2: the sun's
+        cells = F.adaptive_avg_pool2d(light.permute(0, 3, 1, 2), 4).flatten(2)
+        expected = torch.log(cells[:, :, 0 * 4 + 2] / cells.mean(2))                 # [B,3]
+        added = lit.correction(x, light) - before
+        assert torch.allclose(added[:, :3], expected[:, :, None, None].expand(-1, -1, 16, 20), atol=1e-4)
+        assert expected[0, 0] > 1.5 and expected[0, 0] > expected[0, 2] + 1 and added[:, 3:].abs().max() == 0
+        # With weights learnt from the frames, the term shades places apart, and the mirror symmetry holds.
+        lit.transport_head.bias.zero_()
+        torch.nn.init.normal_(lit.transport_head.weight, std=1.0)
+        added = lit.correction(x, light)[:, :3] - before[:, :3]
+        assert added.std((2, 3)).min() > 1e-3
+        mirrored = Refiner(replace(transport_config, flip_average=True))
+        mirrored.load_state_dict(lit.state_dict())
+        assert torch.allclose(mirrored.correction(x.flip(-1), light.flip(2)), mirrored.correction(x, light).flip(-1),
+                              atol=1e-5)
+    # Reshading: the gated term swaps the base's own shading (relit ÷ albedo, per cell) for the transport one.
+    reshading = Refiner(replace(transport_config, reshade=True))
+    assert "transport term new" in refine.initial_weights(reshading, tmp_path / "plain.safetensors")
+    with torch.no_grad():
+        assert torch.allclose(reshading.correction(x, light), before, atol=1e-6)   # the gate starts at zero
+        reshading.transport_gate.bias.fill_(1.0)
+        reshading.transport_head.bias[0 * 4 + 2] = 60.0
+        own = F.avg_pool2d(torch.log((x[:, 9:12] + 1.04) / (x[:, 12:15] + 1.04)), 2)   # its level: 1/2 size here
+        swapped = F.interpolate(expected[:, :, None, None] - own, size=(16, 20), mode="bilinear", align_corners=False)
+        assert torch.allclose(reshading.correction(x, light)[:, :3] - before[:, :3], swapped, atol=1e-4)
+    # Trained alone (training's optimiser: its own group at --transport-lr; the rest frozen here at scale 0) where
+    # each half of the frame is lit from its own cell of the probe, under new random suns every step, it learns
+    # to follow the light: only a shading linear in the probe can fit that.
+    torch.manual_seed(9)
+    learner = Refiner(transport_config)
+    optimiser = refine.refiner_optimizer(learner, 1e-2, head_lr=0.0, transport_lr=10.0)
+    rest, head, transport = optimiser.param_groups
+    assert [id(p) for p in transport["params"]] == [id(learner.transport_head.weight), id(learner.transport_head.bias)]
+    rest["scale"] = 0.0
+    for group in optimiser.param_groups:
+        group["lr"] = 1e-2 * group["scale"]
+    frozen = learner.stem.weight.clone()
+    right = torch.zeros(4, 1, 16, 16)
+    right[..., 8:] = 1.0
+    inputs = (right * 1.6 - 0.8).expand(4, 3, 16, 16)                            # the input tells the halves apart
+    base = torch.zeros(4, 3, 16, 16)
+    x, r, a = refine.network_input("filtered", inputs, base, base, (base, base))
+
+    def lit_halves():
+        probe = torch.rand(4, 32, 32, 3) + 0.1
+        probe[:, 0:8, 16:24] += torch.rand(4, 1, 1, 3) * 40                         # cell 2 lights the left half,
+        probe[:, 8:16, 8:16] += torch.rand(4, 1, 1, 3) * 40                         # cell 5 the right one
+        cells = F.adaptive_avg_pool2d(probe.permute(0, 3, 1, 2), 4).flatten(2)
+        shading = cells / cells.mean(2, keepdim=True)
+        field = torch.where(right.bool(), shading[:, :, 5, None, None], shading[:, :, 2, None, None])
+        return probe, (base + 1.04) * field - 1.04                                # the base under that gain
+
+    def loss_of(probe, target):
+        relit, _ = learner.corrected(learner(x, learner.light(probe)), r, a, clamp=False)
+        return refine.item_loss(relit, target, torch.ones(4, 16, 16))
+
+    held = [lit_halves() for _ in range(4)]
+    with torch.no_grad():
+        before = sum(loss_of(*item) for item in held) / 4
+    for _ in range(200):
+        loss = loss_of(*lit_halves())
+        optimiser.zero_grad()
+        loss.backward()
+        optimiser.step()
+    with torch.no_grad():
+        after = sum(loss_of(*item) for item in held) / 4
+    assert after < before - 1.5 and torch.equal(learner.stem.weight, frozen)        # log MSE, on suns it never saw
+    for bad in ({"lighting": True, "relit_gain": 4, "transport": 1}, {"relit_gain": 4, "transport": 8},
+                {"lighting": True, "transport": 8}, {"lighting": True, "relit_gain": 4, "clips": ["albedo"], "transport": 8},
+                {"lighting": True, "relit_gain": 4, "reshade": True}):
+        with pytest.raises(ValueError, match="transport"):
+            RefinerConfig.from_dict(bad)
+
+
+@pytest.mark.parametrize("input_mix", [False, True])
+def test_a_colour_averaged_refiner_treats_every_order_of_the_colour_channels_alike(input_mix):
+    torch.manual_seed(10)
+    config = RefinerConfig(widths=(4, 8, 8), blocks=1, base="filtered", clips=("relit", "albedo"), lighting=True,
+                           flip_average=True, relit_gain=4 if input_mix else 0, input_mix=input_mix)
+    plain = Refiner(config)
+    for parameter in plain.parameters():
+        torch.nn.init.normal_(parameter, std=0.2)
+    averaged = Refiner(RefinerConfig.from_dict({**config.to_dict(), "colour_average": True}))
+    assert averaged.config.to_dict()["colour_average"] is True and averaged.config.shape == config.shape
+    averaged.load_state_dict(plain.state_dict())
+    x = torch.rand(2, 15, 16, 20) * 2 - 1
+    light = torch.rand(2, 32, 32, 3) + 0.1
+    light[:, 4:8, 20:24, 0] += 50.0                                                  # a red sun
+
+    def channels(count, order):       # every RGB triple's channel j from its channel order[j]; a lone last one stays
+        return [3 * t + o for t in range(count // 3) for o in order] + list(range(3 * (count // 3), count))
+
+    order = [2, 0, 1]
+    with torch.no_grad():
+        out, out_swapped = averaged.correction(x, light), averaged.correction(x[:, channels(15, order)], light[..., order])
+        assert out.shape[1] == (10 if input_mix else 6)
+        # the colours swapped in, the correction's colours come out swapped alike (the mix logit as it was) ...
+        assert torch.allclose(out_swapped, out[:, channels(out.shape[1], order)], atol=1e-5)
+        # ... which the refiner itself does not do: the average is of six different corrections, each put back
+        alone = plain.correction(x[:, channels(15, order)], light[..., order])
+        assert (alone - plain.correction(x, light)[:, channels(out.shape[1], order)]).abs().max() > 1e-2
+        expected = sum(plain.correction(x[:, channels(15, p)], light[..., list(p)])[:, np.argsort(channels(out.shape[1], p))]
+                       for p in itertools.permutations(range(3))) / 6
+        assert torch.allclose(out, expected, atol=1e-5)
 
 
 def test_a_relit_refiner_beside_the_albedo_one_corrects_the_relit_frames_with_the_target_light(tmp_path):

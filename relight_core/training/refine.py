@@ -302,7 +302,7 @@ def train(args: argparse.Namespace, log=print) -> dict:
 
     model = Refiner(config).to(memory_format=torch.channels_last)   # ~1.4× faster convolutions on a CPU
     ema = copy.deepcopy(model).eval().requires_grad_(False)
-    optimizer = refiner_optimizer(model, args.lr, args.head_lr)
+    optimizer = refiner_optimizer(model, args.lr, args.head_lr, transport_lr=args.transport_lr)
     generator = torch.Generator().manual_seed(args.seed)
     state = {"step": 0, "seconds": 0.0, "best": None,
              "start": {"dit": scores(val_data, _hwc(val_data["relit"]), _hwc(val_data["albedo"]))}}
@@ -316,7 +316,7 @@ def train(args: argparse.Namespace, log=print) -> dict:
                              "give a new --out or the same --widths/--blocks/--base/--lighting/--input-mix")
         model.load_state_dict(saved["model"])
         ema.load_state_dict(saved["ema"])
-        optimizer = refiner_optimizer(model, args.lr, args.head_lr, saved["optimizer"])
+        optimizer = refiner_optimizer(model, args.lr, args.head_lr, saved["optimizer"], args.transport_lr)
         generator.set_state(saved["generator"])
         state = json.loads(saved["state"])
         log(f"resumed at step {state['step']} ({state['seconds'] / 60:.1f} min used)"
@@ -415,20 +415,26 @@ def flag_config(args: argparse.Namespace) -> RefinerConfig:
     return RefinerConfig.from_dict({"widths": args.widths, "blocks": args.blocks, "base": args.base, "clips": args.clips,
                                     "flip_average": args.flip_average, "lighting": args.lighting,
                                     "relit_gain": args.relit_gain, "input_mix": args.input_mix,
-                                    "light_detail": args.light_detail, "film_encoder": args.film_encoder})
+                                    "light_detail": args.light_detail, "film_encoder": args.film_encoder,
+                                    "transport": args.transport, "reshade": args.reshade})
 
 
-def refiner_optimizer(model: Refiner, lr: float, head_lr: float = 1.0, saved: dict | None = None
-                      ) -> torch.optim.AdamW:
-    """AdamW over `model`'s weights, its last layer (`head`) at `head_lr` times `lr`: each group's "scale",
-    which the warm-up multiplies in. With `saved` (a checkpoint's optimiser state) it resumes that one, its
-    scales as they were; one saved before the head had a group of its own resumes as its one group."""
+def refiner_optimizer(model: Refiner, lr: float, head_lr: float = 1.0, saved: dict | None = None,
+                      transport_lr: float = 1.0) -> torch.optim.AdamW:
+    """AdamW over `model`'s weights, its last layer (`head`) at `head_lr` times `lr` and its transport layer
+    (`transport_head`, if any: new, from zero, beside trained weights) at `transport_lr` times: each group's
+    "scale", which the warm-up multiplies in. With `saved` (a checkpoint's optimiser state) it resumes that
+    one, its scales as they were; one saved before the head had a group of its own resumes as its one group."""
     if saved is not None and len(saved["param_groups"]) == 1:
         groups = [{"params": list(model.parameters()), "scale": 1.0}]
     else:
-        head = [p for name, p in model.named_parameters() if name.startswith("head.")]
-        rest = [p for name, p in model.named_parameters() if not name.startswith("head.")]
+        named = list(model.named_parameters())
+        head = [p for name, p in named if name.startswith("head.")]
+        transport = [p for name, p in named if name.startswith(("transport_head.", "transport_gate."))]
+        rest = [p for name, p in named if not name.startswith(("head.", "transport_head.", "transport_gate."))]
         groups = [{"params": rest, "scale": 1.0}, {"params": head, "scale": head_lr}]
+        if transport:
+            groups.append({"params": transport, "scale": transport_lr})
     optimizer = torch.optim.AdamW(groups, lr=lr, weight_decay=0.0)
     if saved is not None:
         optimizer.load_state_dict(saved)
@@ -462,6 +468,10 @@ def initial_weights(refiner: Refiner, path: Path) -> str:
     if widened is not None:
         state = widened
         lit += ", with more of the light new (at zero weight)"
+    if refiner.config.transport and "transport_head.weight" not in state:
+        # a refiner without the transport term gains it at zero: a uniform weighting, a shading of 1 (a gate of 0)
+        state = {**state, **{k: v for k, v in fresh.items() if k.startswith(("transport_head.", "transport_gate."))}}
+        lit += ", with the transport term new (at zero)"
     try:
         refiner.load_state_dict(state)
         return "as it is" + lit
@@ -614,6 +624,14 @@ def main(argv: list[str] | None = None) -> int:
                         help="with --lighting: the FiLM also sees the probe on a K×K grid (refiner.RefinerConfig.light_detail)")
     parser.add_argument("--film-encoder", action="store_true",
                         help="with --lighting: FiLM on the encoder levels too (refiner.RefinerConfig.film_encoder)")
+    parser.add_argument("--transport", type=int, default=0, metavar="K",
+                        help="with --lighting and --relit-gain: the relit log gain also gets the log of a shading linear "
+                             "in the light, a per-pixel weighted mean of the probe's K×K cells (refiner.RefinerConfig.transport)")
+    parser.add_argument("--reshade", action="store_true",
+                        help="with --transport: the term, gated per pixel, swaps the base's own shading (relit ÷ albedo) "
+                             "for the transport one (refiner.RefinerConfig.reshade)")
+    parser.add_argument("--transport-lr", type=float, default=1.0, metavar="F",
+                        help="the transport layer (new, from zero) learns F times faster than --lr")
     parser.add_argument("--relit-gain", type=int, default=0, metavar="CELL",
                         help="the relit correction is a smooth gain on the relit base, one value per CELL×CELL pixels "
                              "interpolated (refiner.RefinerConfig.relit_gain): it cannot draw an edge; 0 (default): added")
@@ -637,8 +655,8 @@ def main(argv: list[str] | None = None) -> int:
     for path in [*args.pack, *args.seen, args.val_pack]:
         if not path.is_file():
             parser.error(f"no pack at {path}")
-    if not args.alike_weight > 0 or not args.head_lr >= 0:
-        parser.error("--alike-weight takes a number above 0 and --head-lr one of 0 or more")
+    if not args.alike_weight > 0 or not args.head_lr >= 0 or not args.transport_lr >= 0:
+        parser.error("--alike-weight takes a number above 0, --head-lr and --transport-lr one of 0 or more")
     if args.init is not None and not args.init.is_file():
         parser.error(f"no refiner weights at --init {args.init}")
     if not (args.model / DIT_FILE).is_file():
