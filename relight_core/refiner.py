@@ -68,7 +68,7 @@ CONFIG_KEYS = ('"widths" (1 to 6 whole numbers from 1 to 1024), "blocks" (0 to 8
                '"film_encoder" (true or false; true only with "lighting" true), "transport" (0, or a grid of 2 to 32 '
                'with "lighting" true, a relit_gain cell and the relit clip), "reshade" (true or false; true only with '
                '"transport"), "colour_average" (true or false) and "strength" (0 to 2)')
-TRANSPORT_FLOOR = 1e-3                         # `transport`: the shading ratio is floored here before its log
+TRANSPORT_FLOOR = 1e-3                         # `transport`: its shading is floored here before the log
 
 
 @dataclass(frozen=True)
@@ -170,8 +170,9 @@ class RefinerConfig:
     @property
     def shape(self) -> tuple:
         """What its weights depend on (widths, blocks, base, lighting, input_mix: its head's channels,
-        light_detail and film_encoder: its FiLM's, transport: its transport layer); `clips`, `flip_average`, `relit_gain` and `strength`
-        only change how they are used, so a run may resume or start from weights with other ones."""
+        light_detail and film_encoder: its FiLM's, transport and reshade: its transport layers); `clips`,
+        `flip_average`, `colour_average`, `relit_gain` and `strength` only change how they are used, so a run
+        may resume or start from weights with other ones."""
         return (self.widths, self.blocks, self.base, self.lighting, self.input_mix, self.light_detail,
                 self.film_encoder, self.transport, self.reshade)
 
@@ -341,11 +342,11 @@ class Refiner(nn.Module):
                 log_shading = torch.log(shading)
                 if self.config.reshade:
                     # the base's own shading, relit ÷ albedo per channel at this level's size, swapped for the
-                    # transport one where the gate says so
-                    relit_base, albedo_base = (x[:, 9:12], x[:, 12:15]) if self.config.base == "filtered" else (x[:, 3:6], x[:, 6:9])
+                    # transport one where the gate says so (the bases: `network_input`'s channels 9–14 or 3–8)
+                    at = 9 if self.config.base == "filtered" else 3
+                    relit_base, albedo_base = x[:, at:at + 3].float(), x[:, at + 3:at + 6].float()
                     eps = 2 * GAIN_EPSILON
-                    own = F.adaptive_avg_pool2d(torch.log((relit_base.float() + 1 + eps) / (albedo_base.float() + 1 + eps)),
-                                                h.shape[-2:])
+                    own = F.adaptive_avg_pool2d(torch.log((relit_base + 1 + eps) / (albedo_base + 1 + eps)), h.shape[-2:])
                     log_shading = self.transport_gate(F.silu(h)).float() * (log_shading - own)
         out = self.head(F.silu(h))
         if probe is not None:

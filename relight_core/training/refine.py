@@ -422,8 +422,8 @@ def flag_config(args: argparse.Namespace) -> RefinerConfig:
 def refiner_optimizer(model: Refiner, lr: float, head_lr: float = 1.0, saved: dict | None = None,
                       transport_lr: float = 1.0) -> torch.optim.AdamW:
     """AdamW over `model`'s weights, its last layer (`head`) at `head_lr` times `lr` and its transport layer
-    (`transport_head`, if any: new, from zero, beside trained weights) at `transport_lr` times: each group's
-    "scale", which the warm-up multiplies in. With `saved` (a checkpoint's optimiser state) it resumes that
+    (`transport_head` and `transport_gate`, if any: new, from zero, beside trained weights) at `transport_lr`
+    times: each group's "scale", which the warm-up multiplies in. With `saved` (a checkpoint's optimiser state) it resumes that
     one, its scales as they were; one saved before the head had a group of its own resumes as its one group."""
     if saved is not None and len(saved["param_groups"]) == 1:
         groups = [{"params": list(model.parameters()), "scale": 1.0}]
