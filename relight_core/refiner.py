@@ -68,6 +68,7 @@ CONFIG_KEYS = ('"widths" (1 to 6 whole numbers from 1 to 1024), "blocks" (0 to 8
                '"film_encoder" (true or false; true only with "lighting" true), "transport" (0, or a grid of 2 to 32 '
                'with "lighting" true, a relit_gain cell and the relit clip), "reshade" (true or false; true only with '
                '"transport"), "colour_average" (true or false) and "strength" (0 to 2)')
+TRANSPORT_LAYERS = ("transport_head.", "transport_gate.")   # `transport`'s weights (new to a refiner without it)
 TRANSPORT_FLOOR = 1e-3                         # `transport`: its shading is floored here before the log
 
 
@@ -207,11 +208,18 @@ def network_input(base: str, inputs: torch.Tensor, relit: torch.Tensor, albedo: 
     return torch.cat(parts, dim=1), relit, albedo
 
 
+def _cell_means(panoramas: torch.Tensor, cells: int) -> torch.Tensor:
+    """[B,3,cells,cells] area averages of camera-frame panoramas [B,h,w,3], or ValueError for another shape."""
+    if panoramas.dim() != 4 or panoramas.shape[-1] != 3:
+        raise ValueError(f"the refiner's light takes panoramas [B,h,w,3]; got {tuple(panoramas.shape)}")
+    return F.adaptive_avg_pool2d(panoramas.permute(0, 3, 1, 2).float(), cells)
+
+
 def transport_light(panoramas: torch.Tensor, cells: int) -> torch.Tensor:
     """[B,3,cells²] the probe for `transport`: camera-frame panoramas [B,h,w,3] area-averaged on a cells×cells
     grid, each channel divided by its mean over the cells (so a uniform weighting of them gives 1: the
     colour of the whole light is the protocol's scale fit's, what varies from place to place is shading)."""
-    grid = F.adaptive_avg_pool2d(panoramas.permute(0, 3, 1, 2).float(), cells).clamp_min(0).flatten(2)
+    grid = _cell_means(panoramas, cells).clamp_min(0).flatten(2)
     return grid / grid.mean(2, keepdim=True).clamp_min(1e-6)
 
 
@@ -220,9 +228,7 @@ def light_features(panoramas: torch.Tensor, cells: int = LIGHT_GRID) -> torch.Te
     the packs' 32² lighting grid or a frame-sized panorama alike): area averages on a cells×cells grid
     (8×8 by default), divided by their mean (the protocol fits each channel's scale, so only the light's
     shape and colour count), then log(· + 0.05)."""
-    if panoramas.dim() != 4 or panoramas.shape[-1] != 3:
-        raise ValueError(f"light_features takes panoramas [B,h,w,3]; got {tuple(panoramas.shape)}")
-    grid = F.adaptive_avg_pool2d(panoramas.permute(0, 3, 1, 2).float(), cells)
+    grid = _cell_means(panoramas, cells)
     grid = grid / grid.mean((1, 2, 3), keepdim=True).clamp_min(1e-6)
     return torch.log(grid.clamp_min(0) + 0.05).flatten(1)
 

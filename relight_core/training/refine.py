@@ -50,7 +50,8 @@ from safetensors.torch import load_file, save_file
 from relight_core.checkpoint import CONFIG_FILE, DIT_FILE, load_model
 from relight_core.evaluation.metrics import protocol_psnr
 from relight_core.precision import resolve_precision
-from relight_core.refiner import LIGHT_FEATURES, REFINER_FILE, REFINER_SLOTS, Refiner, RefinerConfig, network_input
+from relight_core.refiner import (LIGHT_FEATURES, REFINER_FILE, REFINER_SLOTS, TRANSPORT_LAYERS, Refiner, RefinerConfig,
+                                  network_input)
 from relight_core.tokenizer import build_tokenizer
 from relight_core.training.fast import make_batch, sample_relight
 from relight_core.training.pack import load_packs
@@ -313,7 +314,8 @@ def train(args: argparse.Namespace, log=print) -> dict:
         saved = torch.load(checkpoint, map_location="cpu", weights_only=True)
         if RefinerConfig.from_dict(saved["config"]).shape != config.shape:
             raise ValueError(f"{checkpoint} is a refiner of another shape ({saved['config']}); "
-                             "give a new --out or the same --widths/--blocks/--base/--lighting/--input-mix")
+                             "give a new --out or the same --widths/--blocks/--base/--lighting/--input-mix/"
+                             "--light-detail/--film-encoder/--transport/--reshade")
         model.load_state_dict(saved["model"])
         ema.load_state_dict(saved["ema"])
         optimizer = refiner_optimizer(model, args.lr, args.head_lr, saved["optimizer"], args.transport_lr)
@@ -430,8 +432,8 @@ def refiner_optimizer(model: Refiner, lr: float, head_lr: float = 1.0, saved: di
     else:
         named = list(model.named_parameters())
         head = [p for name, p in named if name.startswith("head.")]
-        transport = [p for name, p in named if name.startswith(("transport_head.", "transport_gate."))]
-        rest = [p for name, p in named if not name.startswith(("head.", "transport_head.", "transport_gate."))]
+        transport = [p for name, p in named if name.startswith(TRANSPORT_LAYERS)]
+        rest = [p for name, p in named if not name.startswith(("head.", *TRANSPORT_LAYERS))]
         groups = [{"params": rest, "scale": 1.0}, {"params": head, "scale": head_lr}]
         if transport:
             groups.append({"params": transport, "scale": transport_lr})
@@ -470,7 +472,7 @@ def initial_weights(refiner: Refiner, path: Path) -> str:
         lit += ", with more of the light new (at zero weight)"
     if refiner.config.transport and "transport_head.weight" not in state:
         # a refiner without the transport term gains it at zero: a uniform weighting, a shading of 1 (a gate of 0)
-        state = {**state, **{k: v for k, v in fresh.items() if k.startswith(("transport_head.", "transport_gate."))}}
+        state = {**state, **{k: v for k, v in fresh.items() if k.startswith(TRANSPORT_LAYERS)}}
         lit += ", with the transport term new (at zero)"
     try:
         refiner.load_state_dict(state)
