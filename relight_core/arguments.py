@@ -20,6 +20,7 @@ MAX_ROTATION_DEG = 3600.0  # ten turns: a yaw or sweep end beyond this is a typo
 MAX_INTENSITY = 1e6
 MAX_SEEDS = 256  # seeds in one list: one result each
 MAX_ENSEMBLE = 16  # samples averaged into one result, at most (ModelSpec.ensemble, RelightRequest.ensemble)
+SHIFT_AVERAGES = (1, 2, 4)  # ModelSpec.shift_average: copies of a sample at half-token shifts (Relighter._members)
 PRECISIONS = ("auto", "fp32", "bf16", "fp16")  # compute precisions (precision.py); here so parsers need no torch
 
 

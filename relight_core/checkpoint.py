@@ -21,7 +21,7 @@ from pathlib import Path
 import torch
 from safetensors.torch import load_file, save_file
 
-from relight_core.arguments import MAX_ENSEMBLE
+from relight_core.arguments import MAX_ENSEMBLE, SHIFT_AVERAGES
 from relight_core.dit import DIT_PRESETS, DiTConfig, JointDiT
 from relight_core.errors import InputError
 from relight_core.precision import check_precision
@@ -56,6 +56,9 @@ class ModelSpec:
                                              # residual model's offset, 0 = off (upsample.smooth_offset)
     ensemble: int = 1                    # samples averaged into each result; every second one is run on the
                                          # mirror image under the mirrored light (Relighter, MAX_ENSEMBLE)
+    shift_average: int = 1               # copies of each sample run on the frames shifted by half a DiT token
+                                         # ((0,0), (h,h), (h,0), (0,h)) and shifted back before the mean: the
+                                         # token grid's seams average out (Relighter._members; 1, 2 or 4)
     refiner: dict | None = None          # the detail refiner's shape (refiner.RefinerConfig) when the folder
                                          # holds refiner.safetensors; None = no refiner
     relit_refiner: dict | None = None    # a second one (relit_refiner.safetensors), e.g. one that sees the
@@ -93,6 +96,10 @@ class ModelSpec:
             if not isinstance(count, int) or isinstance(count, bool) or not 1 <= count <= MAX_ENSEMBLE:
                 raise InputError(f"The model's config.json has ensemble {count!r}; it takes a whole number of "
                                  f"samples from 1 to {MAX_ENSEMBLE}, or leave it out.")
+        copies = kwargs.get("shift_average", 1)
+        if not isinstance(copies, int) or isinstance(copies, bool) or copies not in SHIFT_AVERAGES:
+            raise InputError(f"The model's config.json has shift_average {copies!r}; it takes "
+                             f"{', '.join(map(str, SHIFT_AVERAGES))} (copies at half-token shifts), or leave it out.")
         for slot in REFINER_SLOTS:
             if kwargs.get(slot) is not None:
                 try:

@@ -24,6 +24,11 @@ class CostModel:
     _flops_per_second: float | None = None  # measured on the last run
     _overhead_per_pixel: float | None = None  # seconds per frame pixel outside the network, measured
 
+    def batch_members(self, ensemble) -> int:
+        """The batch entries a request runs as one batch: its samples (`members`) × the model's copies at
+        half-token shifts (`ModelSpec.shift_average`)."""
+        return self.members(ensemble) * self.spec.shift_average
+
     def members(self, ensemble) -> int:
         """The samples a request averages (`RelightRequest.ensemble`; None: the model's `ensemble`);
         anything but a whole number from 1 to MAX_ENSEMBLE is one InputError sentence."""
@@ -38,7 +43,7 @@ class CostModel:
                          ensemble: int | None = None) -> float:
         """Rough wall time of a request, from a measured (or assumed) cost per token."""
         steps = steps or self.spec.steps
-        members = self.members(ensemble)
+        members = self.batch_members(ensemble)
         chunks = plan_chunks(num_frames, self.spec.chunk_frames, self.spec.overlap_frames)
         t = self.tokenizer.latent_frames(min(num_frames, self.spec.chunk_frames)) if num_frames > 1 else 1
         tokens = NUM_CLIPS * t * (height // self.frame_multiple) * (width // self.frame_multiple)

@@ -77,7 +77,7 @@ def plan_job(job: MediaJob, relighter: Relighter, inputs: JobInputs) -> JobPlan:
     relighter.check_memory(source.frames.shape[0], *media.target_size(*source.frames.shape[1:3], size,
                                                                       relighter.frame_multiple),
                            guidance=job.guidance > 0, hint="pass a smaller --size",
-                           members=relighter.members(job.ensemble))
+                           members=relighter.batch_members(job.ensemble))
     frames = media.resize_frames(source.frames, size, multiple=relighter.frame_multiple)
     base = dict(fps=source.fps, audio_path=source.audio_path, audio_start=source.audio_start, steps=job.steps,
                 sampler=job.sampler, guidance=job.guidance, ensemble=job.ensemble, mode=job.mode, probe=inputs.probe,

@@ -188,7 +188,7 @@ class Relighter(CostModel):
         seconds = time.perf_counter() - started
         if evals_done:
             tokens = NUM_CLIPS * t * (height // self.frame_multiple) * (width // self.frame_multiple)
-            network = sum(network_seconds) / members  # the throughput of one member's sequence
+            network = sum(network_seconds) / self.batch_members(request.ensemble)  # one batch entry's sequence
             self._flops_per_second = evals_done * self._flops_per_eval(tokens) / max(network, 1e-6)
             self._overhead_per_pixel = max(seconds - network, 0.0) / (num_frames * height * width)
         yield Finished(RelightResult(relit_out, albedo_out, request.fps, request.audio_path, request.seed,
@@ -238,7 +238,7 @@ class Relighter(CostModel):
                 or not 0 <= int(request.seed) <= MAX_SEED:
             raise InputError(f"The seed {request.seed} is out of range; use a whole number from 0 to {MAX_SEED}.")
         self.check_memory(frames.shape[0], height, width, guidance=request.guidance > 0,
-                          members=self.members(request.ensemble))
+                          members=self.batch_members(request.ensemble))
         return np.clip(frames, 0.0, 1.0)
 
     def _prepared_probe(self, request: RelightRequest) -> torch.Tensor | None:
@@ -301,21 +301,38 @@ class Relighter(CostModel):
         return latents
 
     def _members(self, request, frames, albedo, probe, rotations, overlap, members: int):
-        """`_conditions` for an ensemble of `members` samples stacked on the batch axis: condition
-        [members,16,3t,h,w], the shared mask [1,1,3t,1,1] and lighting [members,51,t,h,w]. Member 0 is
-        the plain request; every odd member is its mirror image (frames, albedo, the previous chunk's
-        output and the light flipped left↔right, `_decode` flips its result back), each member with its
-        own noise — averaging them estimates the posterior mean and cancels the model's left↔right bias."""
-        plain = self._conditions(request, frames, albedo, probe, rotations, overlap)
-        if members == 1:
-            return plain
-        mirrored = self._conditions(
-            request, _mirrored(frames), None if albedo is None else _mirrored(albedo), probe, rotations,
-            None if overlap is None else tuple(_mirrored(x) for x in overlap), mirror=True)
-        variants = [plain, mirrored]
-        condition = torch.cat([variants[m % 2][0] for m in range(members)])
-        lighting_latents = torch.cat([variants[m % 2][2] for m in range(members)])
-        return condition, plain[1], lighting_latents
+        """`_conditions` for an ensemble of `members` samples, each run as `spec.shift_average` copies, all
+        stacked on the batch axis (`_variants` orders them): condition [members·copies,16,3t,h,w], the shared
+        mask [1,1,3t,1,1] and lighting [members·copies,51,t,h,w]. Member 0 is the plain request; every odd
+        member is its mirror image (frames, albedo, the previous chunk's output and the light flipped
+        left↔right, `_decode` flips its result back), each member with its own noise — averaging them
+        estimates the posterior mean and cancels the model's left↔right bias. A copy sees those frames rolled
+        by its shift (`_shifts`: half a DiT token, so the token grid falls elsewhere on the scene); `_decode`
+        rolls its result back and leaves out the token row and column the roll wrapped across the border."""
+        variants = self._variants(members)
+        if variants == [(False, (0, 0))]:
+            return self._conditions(request, frames, albedo, probe, rotations, overlap)
+
+        def moved(x: np.ndarray | None, mirror: bool, shift: tuple[int, int]) -> np.ndarray | None:
+            if x is None:
+                return None
+            x = _mirrored(x) if mirror else x
+            return np.ascontiguousarray(np.roll(x, shift, axis=(1, 2))) if shift != (0, 0) else x
+
+        built = [self._conditions(request, moved(frames, mirror, shift), moved(albedo, mirror, shift), probe,
+                                  rotations, None if overlap is None else tuple(moved(x, mirror, shift) for x in overlap),
+                                  mirror=mirror)
+                 for mirror, shift in variants]
+        return torch.cat([b[0] for b in built]), built[0][1], torch.cat([b[2] for b in built])
+
+    def _shifts(self) -> list[tuple[int, int]]:
+        """The (down, right) pixel shifts of a sample's `spec.shift_average` copies: half a DiT token."""
+        half = self.frame_multiple // 2
+        return [(0, 0), (half, half), (half, 0), (0, half)][:self.spec.shift_average]
+
+    def _variants(self, members: int) -> list[tuple[bool, tuple[int, int]]]:
+        """(mirrored, shift) of each batch entry of `members` samples: sample by sample, copy by copy."""
+        return [(m % 2 == 1, shift) for m in range(members) for shift in self._shifts()]
 
     def _conditions(self, request, frames, albedo, probe, rotations, overlap, mirror: bool = False):
         """Condition latent [1,16,3t,h,w], its per-frame mask [1,1,3t,1,1] and lighting [1,51,t,h,w]
@@ -362,19 +379,36 @@ class Relighter(CostModel):
 
     def _decode(self, x0: torch.Tensor, t: int, length: int) -> tuple[np.ndarray, np.ndarray]:
         """Decode the relit and albedo clips of x0 to frames [length,H,W,3] in [0,1]; for an ensemble
-        (`_members`) the mean of its members, the mirrored ones flipped back first."""
-        members = x0.shape[0]
+        (`_members`) the mean of its entries, each rolled back and, if mirrored, flipped back first — a
+        shifted copy not counting in the token row and column its roll wrapped across the border (half a
+        token at each edge of the frame, which the unshifted entries fill)."""
+        entries = x0.shape[0]
         clips = x0[:, :, t:].float()
-        both = torch.cat([clips[:, :, :t], clips[:, :, t:]], dim=0)  # [2·members, 16, t, h, w]
+        both = torch.cat([clips[:, :, :t], clips[:, :, t:]], dim=0)  # [2·entries, 16, t, h, w]
         with torch.no_grad(), self._autocast():
             video = self.tokenizer.decode(both).float()
         frames = ((video.clamp(-1, 1) + 1) / 2).permute(0, 2, 3, 4, 1).cpu().numpy()[:, :length]
-        relit, albedo = frames[:members], frames[members:]
-        for clip in (relit, albedo):
-            clip[1::2] = clip[1::2, :, :, ::-1]          # the odd members were mirrored
-        if members == 1:
+        relit, albedo = frames[:entries], frames[entries:]
+        if entries == 1:
             return relit[0], albedo[0]
-        return relit.mean(axis=0), albedo.mean(axis=0)
+        variants = self._variants(entries // self.spec.shift_average)
+        height, width = frames.shape[2:4]
+        token = self.frame_multiple
+        out = []
+        for clip in (relit, albedo):
+            total, weight = np.zeros_like(clip[0]), np.zeros((height, width, 1), np.float32)
+            for entry, (mirror, (down, right)) in zip(clip, variants):
+                # the first token row (column) of a copy rolled down (right) holds the strip rolled in from the
+                # other side next to the scene's edge: neither part saw its true neighbours
+                valid = np.ones((height, width, 1), np.float32)
+                valid[:token if down else 0], valid[:, :token if right else 0] = 0, 0
+                entry, valid = (np.roll(a, (-down, -right), axis=(-3, -2)) for a in (entry * valid, valid))
+                if mirror:
+                    entry, valid = entry[..., ::-1, :], valid[:, ::-1]
+                total += entry
+                weight += valid
+            out.append(total / weight)                                  # entry 0 (unshifted) counts everywhere
+        return out[0], out[1]
 
     def _refiner_light(self, request: RelightRequest, probe: torch.Tensor | None, rotations: list[float],
                        height: int, width: int) -> torch.Tensor | None:
