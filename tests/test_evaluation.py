@@ -16,7 +16,8 @@ from relight_core.data.dataset import RelightDataset, read_stream, write_frame, 
 from relight_core.dit import JointDiT, channel_layout
 from relight_core.errors import InputError
 from relight_core.evaluation import protocol_metrics, psnr, scale_fit, ssim
-from relight_core.evaluation.harness import RunOptions, load_items, measure_item, probe_margin, relight, resized
+from relight_core.evaluation.harness import (RunOptions, load_items, measure_item, probe_margin, relight, resized,
+                                             sigma_errors)
 from relight_core.evaluation.metrics import albedo_metrics, delta_e2000, protocol_psnr
 from relight_core.pipeline import Relighter, RelightRequest
 from relight_core.tokenizer import build_tokenizer
@@ -292,6 +293,21 @@ def test_the_margin_is_zero_for_a_model_that_ignores_the_probe(dataset):
     relit_a, _, _ = relight(seeing, item.input, item.other_probe, options)
     assert np.abs(relit_a - relit_b).mean() > 1e-4
     assert abs(probe_margin(relit_b, relit_a, item)) > 1e-6
+
+
+def test_the_sigma_sweep_measures_the_denoiser_alone_whatever_copies_the_model_averages(dataset):
+    from dataclasses import replace
+
+    item = load_items(dataset, "test", count=1)[0]
+    options = RunOptions(steps=2)
+    plain = _tiny()
+    copies = _tiny()
+    copies.spec = replace(copies.spec, shift_average=2)          # results are two copies half a token apart
+    relit_plain = relight(plain, item.input, item.probe, options)[0]
+    assert np.abs(relight(copies, item.input, item.probe, options)[0] - relit_plain).mean() > 1e-5
+    rows = sigma_errors(copies, item, options)
+    assert rows == sigma_errors(plain, item, options) and len(rows) == 3
+    assert copies.spec.shift_average == 2                         # given back after the sweep
 
 
 def test_the_margin_rewards_following_the_probe(dataset):

@@ -229,10 +229,15 @@ def sigma_errors(relighter: Relighter, item: EvalItem, options: RunOptions, ligh
     if model_size(relighter, item.input).shape != item.input.shape:
         item = resized(item, relighter.spec.size, relighter.frame_multiple)
     sweep = _SigmaSweep(relighter, item, options.seed)
-    with _registered(sweep) as name:
-        relighter.relight(RelightRequest(
-            item.input, mode="relight" if lighting else "random", camera_probe=item.probe if lighting else None,
-            steps=options.steps, sampler=name, seed=options.seed, ensemble=1))  # the denoiser, one member
+    spec = relighter.spec
+    relighter.spec = replace(spec, shift_average=1)     # the denoiser itself: one member, no shifted copies
+    try:
+        with _registered(sweep) as name:
+            relighter.relight(RelightRequest(
+                item.input, mode="relight" if lighting else "random", camera_probe=item.probe if lighting else None,
+                steps=options.steps, sampler=name, seed=options.seed, ensemble=1))
+    finally:
+        relighter.spec = spec
     return sweep.records
 
 
