@@ -10,7 +10,6 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-import torch
 
 from relight_core.colour import linear_to_srgb, srgb_to_linear
 from relight_core.data.files import read_exr
