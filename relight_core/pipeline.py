@@ -394,21 +394,24 @@ class Relighter(CostModel):
         variants = self._variants(entries // self.spec.shift_average)
         height, width = frames.shape[2:4]
         token = self.frame_multiple
-        out = []
-        for clip in (relit, albedo):
-            total, weight = np.zeros_like(clip[0]), np.zeros((height, width, 1), np.float32)
-            for entry, (mirror, (down, right)) in zip(clip, variants):
-                # the first token row (column) of a copy rolled down (right) holds the strip rolled in from the
-                # other side next to the scene's edge: neither part saw its true neighbours
-                valid = np.ones((height, width, 1), np.float32)
-                valid[:token if down else 0], valid[:, :token if right else 0] = 0, 0
-                entry, valid = (np.roll(a, (-down, -right), axis=(-3, -2)) for a in (entry * valid, valid))
-                if mirror:
-                    entry, valid = entry[..., ::-1, :], valid[:, ::-1]
-                total += entry
-                weight += valid
-            out.append(total / weight)                                  # entry 0 (unshifted) counts everywhere
-        return out[0], out[1]
+        masks = []
+        for mirror, (down, right) in variants:
+            # the first token row (column) of a copy rolled down (right) holds the strip rolled in from the
+            # other side next to the scene's edge: neither part saw its true neighbours
+            valid = np.ones((height, width, 1), np.float32)
+            valid[:token if down else 0], valid[:, :token if right else 0] = 0, 0
+            masks.append(valid)
+        weight = sum(self._undone(valid, variant) for valid, variant in zip(masks, variants))
+        # entry 0 (unshifted) counts everywhere, so no weight is zero
+        return tuple(sum(self._undone(entry * valid, variant) for entry, valid, variant in zip(clip, masks, variants))
+                     / weight for clip in (relit, albedo))
+
+    @staticmethod
+    def _undone(image: np.ndarray, variant: tuple[bool, tuple[int, int]]) -> np.ndarray:
+        """An entry's frames [...,H,W,C] back in the request's place: rolled back, then flipped back if mirrored."""
+        mirror, (down, right) = variant
+        image = np.roll(image, (-down, -right), axis=(-3, -2))
+        return image[..., ::-1, :] if mirror else image
 
     def _refiner_light(self, request: RelightRequest, probe: torch.Tensor | None, rotations: list[float],
                        height: int, width: int) -> torch.Tensor | None:

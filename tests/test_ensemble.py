@@ -53,13 +53,23 @@ def test_one_member_is_the_plain_sample_and_more_members_change_it():
     np.testing.assert_allclose(by_default.relit, two.relit, atol=1e-6)
 
 
+def _built(relighter: Relighter, seed: int, members: int):
+    """(frames, request, condition, mask, lighting) of `_members` for a random 32-px image under `_probe`."""
+    frames = np.random.default_rng(seed).random((1, 32, 32, 3)).astype(np.float32)
+    request = RelightRequest(frames=frames, probe=_probe())
+    probe = relighter._prepared_probe(request)
+    return (frames, request, *relighter._members(request, frames, None, probe, [request.rotation], None, members))
+
+
+def _offsets(tok, patterns):
+    """Latent offsets [entries,C,3,h,w] that decode to `patterns` [entries,3,1,H,W] in every clip."""
+    return torch.stack([tok.encode(p[None])[0] for p in patterns]).repeat(1, 1, 3, 1, 1)
+
+
 def test_the_mirrored_members_see_the_mirror_image_and_light_and_are_flipped_back():
     relighter = _relighter()
     tok = relighter.tokenizer
-    frames = np.random.default_rng(2).random((1, 32, 32, 3)).astype(np.float32)
-    request = RelightRequest(frames=frames, probe=_probe())
-    probe = relighter._prepared_probe(request)
-    condition, mask, light = relighter._members(request, frames, None, probe, [request.rotation], None, 3)
+    frames, request, condition, mask, light = _built(relighter, 2, 3)
     assert condition.shape[0] == light.shape[0] == 3 and mask.shape[0] == 1
     t = condition.shape[2] // 3
     signed = torch.from_numpy(frames).permute(3, 0, 1, 2) * 2 - 1                     # (3, T, H, W)
@@ -80,10 +90,7 @@ def test_the_mirrored_members_see_the_mirror_image_and_light_and_are_flipped_bac
     pattern = torch.from_numpy(np.random.default_rng(3).uniform(-0.2, 0.2, (3, 1, 32, 32)).astype(np.float32))
 
     def equivariant(x, sigma, **kwargs):
-        members = x.shape[0]
-        offsets = torch.stack([tok.encode((pattern.flip(-1) if m % 2 else pattern)[None])[0]
-                               for m in range(members)])                        # (members, C, 1, h, w)
-        return offsets.repeat(1, 1, 3, 1, 1).to(x)
+        return _offsets(tok, [pattern.flip(-1) if m % 2 else pattern for m in range(x.shape[0])]).to(x)
 
     relighter.denoiser = equivariant
     expected = np.clip(frames + pattern.permute(1, 2, 3, 0).numpy() / 2, 0, 1)
@@ -122,18 +129,10 @@ def test_time_and_memory_estimates_count_the_members():
 SHIFTS = [(0, 0), (4, 4), (4, 0), (0, 4)]       # half of the pixel tokenizer's 8-px token
 
 
-def _offsets(tok, patterns):
-    """Latent offsets [entries,C,3,h,w] that decode to `patterns` [entries,3,1,H,W] in every clip."""
-    return torch.stack([tok.encode(p[None])[0] for p in patterns]).repeat(1, 1, 3, 1, 1)
-
-
 def test_shift_copies_see_the_frames_rolled_by_half_a_token_after_the_mirror():
     relighter = _relighter(shift_average=4)
     tok = relighter.tokenizer
-    frames = np.random.default_rng(4).random((1, 32, 32, 3)).astype(np.float32)
-    request = RelightRequest(frames=frames, probe=_probe())
-    probe = relighter._prepared_probe(request)
-    condition, mask, light = relighter._members(request, frames, None, probe, [request.rotation], None, 2)
+    frames, request, condition, mask, light = _built(relighter, 4, 2)
     assert condition.shape[0] == light.shape[0] == 8 and mask.shape[0] == 1
     assert relighter.batch_members(2) == 8 and relighter.batch_members(None) == 4
     t = condition.shape[2] // 3
