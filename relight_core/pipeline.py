@@ -327,8 +327,7 @@ class Relighter(CostModel):
 
     def _shifts(self) -> list[tuple[int, int]]:
         """The (down, right) pixel shifts of a sample's `spec.shift_average` copies: half a DiT token."""
-        half = self.frame_multiple // 2
-        return [(0, 0), (half, half), (half, 0), (0, half)][:self.spec.shift_average]
+        return copy_shifts(self.spec.shift_average, self.frame_multiple)
 
     def _variants(self, members: int) -> list[tuple[bool, tuple[int, int]]]:
         """(mirrored, shift) of each batch entry of `members` samples: sample by sample, copy by copy."""
@@ -379,9 +378,7 @@ class Relighter(CostModel):
 
     def _decode(self, x0: torch.Tensor, t: int, length: int) -> tuple[np.ndarray, np.ndarray]:
         """Decode the relit and albedo clips of x0 to frames [length,H,W,3] in [0,1]; for an ensemble
-        (`_members`) the mean of its entries, each rolled back and, if mirrored, flipped back first — a
-        shifted copy not counting in the token row and column its roll wrapped across the border (half a
-        token at each edge of the frame, which the unshifted entries fill)."""
+        (`_members`) the mean of its entries, each put back in the request's place first (`copies_mean`)."""
         entries = x0.shape[0]
         clips = x0[:, :, t:].float()
         both = torch.cat([clips[:, :, :t], clips[:, :, t:]], dim=0)  # [2·entries, 16, t, h, w]
@@ -392,26 +389,7 @@ class Relighter(CostModel):
         if entries == 1:
             return relit[0], albedo[0]
         variants = self._variants(entries // self.spec.shift_average)
-        height, width = frames.shape[2:4]
-        token = self.frame_multiple
-        masks = []
-        for mirror, (down, right) in variants:
-            # the first token row (column) of a copy rolled down (right) holds the strip rolled in from the
-            # other side next to the scene's edge: neither part saw its true neighbours
-            valid = np.ones((height, width, 1), np.float32)
-            valid[:token if down else 0], valid[:, :token if right else 0] = 0, 0
-            masks.append(valid)
-        weight = sum(self._undone(valid, variant) for valid, variant in zip(masks, variants))
-        # entry 0 (unshifted) counts everywhere, so no weight is zero
-        return tuple(sum(self._undone(entry * valid, variant) for entry, valid, variant in zip(clip, masks, variants))
-                     / weight for clip in (relit, albedo))
-
-    @staticmethod
-    def _undone(image: np.ndarray, variant: tuple[bool, tuple[int, int]]) -> np.ndarray:
-        """An entry's frames [...,H,W,C] back in the request's place: rolled back, then flipped back if mirrored."""
-        mirror, (down, right) = variant
-        image = np.roll(image, (-down, -right), axis=(-3, -2))
-        return image[..., ::-1, :] if mirror else image
+        return copies_mean(relit, variants, self.frame_multiple), copies_mean(albedo, variants, self.frame_multiple)
 
     def _refiner_light(self, request: RelightRequest, probe: torch.Tensor | None, rotations: list[float],
                        height: int, width: int) -> torch.Tensor | None:
@@ -555,3 +533,34 @@ def _tokenizer_in(tokenizer, dtype: torch.dtype):
     if hasattr(tokenizer, "set_dtype"):
         tokenizer.set_dtype(dtype)
     return tokenizer
+
+
+def copy_shifts(copies: int, token: int) -> list[tuple[int, int]]:
+    """The (down, right) pixel shifts of a sample's `copies` (`ModelSpec.shift_average`): half a DiT token of
+    `token` pixels, so the token grid falls elsewhere on the scene in each."""
+    half = token // 2
+    return [(0, 0), (half, half), (half, 0), (0, half)][:copies]
+
+
+def copies_mean(entries: np.ndarray, variants: list[tuple[bool, tuple[int, int]]], token: int) -> np.ndarray:
+    """The mean of an ensemble's entries [E,...,H,W,C], entry k made as `variants[k]` (mirrored, (down, right)
+    shift) — each rolled back and, if mirrored, flipped back; a shifted copy not counting in the token row and
+    column its roll wrapped across the border (half a token at each edge of the frame, which the unshifted
+    entries fill; there must be one)."""
+    height, width = entries.shape[-3:-1]
+    masks = []
+    for _, (down, right) in variants:
+        # the first token row (column) of a copy rolled down (right) holds the strip rolled in from the other
+        # side next to the scene's edge: neither part saw its true neighbours
+        valid = np.ones((height, width, 1), np.float32)
+        valid[:token if down else 0], valid[:, :token if right else 0] = 0, 0
+        masks.append(valid)
+    weight = sum(_undone(valid, variant) for valid, variant in zip(masks, variants))
+    return sum(_undone(entry * valid, variant) for entry, valid, variant in zip(entries, masks, variants)) / weight
+
+
+def _undone(image: np.ndarray, variant: tuple[bool, tuple[int, int]]) -> np.ndarray:
+    """An entry's frames [...,H,W,C] back in the request's place: rolled back, then flipped back if mirrored."""
+    mirror, (down, right) = variant
+    image = np.roll(image, (-down, -right), axis=(-3, -2))
+    return image[..., ::-1, :] if mirror else image

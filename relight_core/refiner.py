@@ -35,7 +35,10 @@ its correction is the mean of the one for the frames and the one for their mirro
 (two passes, one batch; the mirrored pass sees the mirrored light, u → 1 − u). With `colour_average` it is
 the mean over the six orders of the colour channels — the frames' and the light's reordered alike, each
 correction's put back — as the training's colour permutation (`refine --permute-colours`) says a scene with
-its colours swapped is as plausible a one (six times the passes).
+its colours swapped is as plausible a one (six times the passes). With `grid_shift` s it is the mean of the
+one for the frames and the one for the frames padded by s pixels on every side (reflected) and cropped back:
+the U-Net halves the frame at each level, so what its coarse levels get wrong is tied to their grid (16-pixel
+cells with five levels), and that grid falls elsewhere on the scene in the second pass (twice the passes).
 
 A model folder holds up to two: `refiner.safetensors` (config.json's "refiner" entry) and
 `relit_refiner.safetensors` ("relit_refiner"), each correcting its clips from the same frames. The
@@ -67,7 +70,7 @@ CONFIG_KEYS = ('"widths" (1 to 6 whole numbers from 1 to 1024), "blocks" (0 to 8
                'cell and the relit clip), "light_detail" (0, or a grid of 2 to 32 with "lighting" true), '
                '"film_encoder" (true or false; true only with "lighting" true), "transport" (0, or a grid of 2 to 32 '
                'with "lighting" true, a relit_gain cell and the relit clip), "reshade" (true or false; true only with '
-               '"transport"), "colour_average" (true or false) and "strength" (0 to 2)')
+               '"transport"), "colour_average" (true or false), "grid_shift" (0 to 64 pixels) and "strength" (0 to 2)')
 TRANSPORT_LAYERS = ("transport_head.", "transport_gate.")   # `transport`'s weights (new to a refiner without it)
 TRANSPORT_FLOOR = 1e-3                         # `transport`: its shading is floored here before the log
 
@@ -98,6 +101,8 @@ class RefinerConfig:
                                                   # (`corrected`): the input's detail where it holds
     colour_average: bool = False                  # average the correction over the six orders of the colour
                                                   # channels (of the frames and the light alike), put back
+    grid_shift: int = 0                           # s > 0: average the correction with the one for the frames
+                                                  # padded by s px (reflected), cropped back (`correction`)
     strength: float = 1.0                         # scales its corrections (the log gain with relit_gain):
                                                   # chosen on held-out scenes by `training.calibrate
                                                   # --strengths`, where a correction learnt on training
@@ -120,6 +125,7 @@ class RefinerConfig:
         transport = data.get("transport", cls.transport)
         reshade = data.get("reshade", cls.reshade)
         colour_average = data.get("colour_average", cls.colour_average)
+        grid_shift = data.get("grid_shift", cls.grid_shift)
 
         def whole(v, low, high):
             return isinstance(v, int) and not isinstance(v, bool) and low <= v <= high
@@ -136,13 +142,14 @@ class RefinerConfig:
                 or ((light_detail or film_encoder) and lighting is not True)
                 or not whole(transport, 0, 32) or 0 < transport < 2
                 or (transport and not (lighting is True and relit_gain and "relit" in clips))
-                or not isinstance(reshade, bool) or (reshade and not transport) or not isinstance(colour_average, bool)):
+                or not isinstance(reshade, bool) or (reshade and not transport) or not isinstance(colour_average, bool)
+                or not whole(grid_shift, 0, 64)):
             raise ValueError(f"a refiner takes {CONFIG_KEYS}; got {data!r}")
         return cls(widths=tuple(widths), blocks=blocks, base=base,
                    clips=tuple(c for c in ("relit", "albedo") if c in clips), flip_average=flip_average,
                    lighting=lighting, relit_gain=relit_gain, input_mix=input_mix, strength=float(strength),
                    light_detail=light_detail, film_encoder=film_encoder, transport=transport,
-                   reshade=reshade, colour_average=colour_average)
+                   reshade=reshade, colour_average=colour_average, grid_shift=grid_shift)
 
     def to_dict(self) -> dict:
         out = {"widths": list(self.widths), "blocks": self.blocks, "base": self.base, "clips": list(self.clips)}
@@ -164,6 +171,8 @@ class RefinerConfig:
             out["reshade"] = True
         if self.colour_average:
             out["colour_average"] = True
+        if self.grid_shift:
+            out["grid_shift"] = self.grid_shift
         if self.strength != 1.0:
             out["strength"] = self.strength
         return out
@@ -172,7 +181,7 @@ class RefinerConfig:
     def shape(self) -> tuple:
         """What its weights depend on (widths, blocks, base, lighting, input_mix: its head's channels,
         light_detail and film_encoder: its FiLM's, transport and reshade: its transport layers); `clips`,
-        `flip_average`, `colour_average`, `relit_gain` and `strength` only change how they are used, so a run
+        `flip_average`, `colour_average`, `grid_shift`, `relit_gain` and `strength` only change how they are used, so a run
         may resume or start from weights with other ones."""
         return (self.widths, self.blocks, self.base, self.lighting, self.input_mix, self.light_detail,
                 self.film_encoder, self.transport, self.reshade)
@@ -365,7 +374,8 @@ class Refiner(nn.Module):
     def correction(self, x: torch.Tensor, panoramas: torch.Tensor | None = None) -> torch.Tensor:
         """The corrections [B,6|10,H,W] for network input `x` [B,9|15,H,W] (`network_input`) and, for a
         refiner with lighting, the target's camera-frame panoramas [B,h,w,3]: the network's own, or with
-        `flip_average` the mean of it and the mirror image's (under the mirrored light) flipped back."""
+        `flip_average` the mean of it and the mirror image's (under the mirrored light) flipped back; with
+        `grid_shift` each of those the mean of the frames' and the padded frames' cropped back (`_shifted`)."""
         if self.config.lighting and panoramas is None:
             raise ValueError("this refiner sees the light; pass the target's camera-frame panoramas")
         if self.config.colour_average:
@@ -373,9 +383,20 @@ class Refiner(nn.Module):
             orders = list(itertools.permutations(range(3)))
             xs = torch.cat([_reordered(x, order) for order in orders])
             lights = torch.cat([panoramas[..., list(order)] for order in orders]) if panoramas is not None else None
-            out = self._mirrored(xs, lights).split(len(x))
+            out = self._shifted(xs, lights).split(len(x))
             return sum(_reordered(o, _inverse(order)) for o, order in zip(out, orders)) / len(orders)
-        return self._mirrored(x, panoramas)
+        return self._shifted(x, panoramas)
+
+    def _shifted(self, x: torch.Tensor, panoramas: torch.Tensor | None) -> torch.Tensor:
+        shift = self.config.grid_shift
+        plain = self._mirrored(x, panoramas)
+        if not shift:
+            return plain
+        height, width = x.shape[-2:]
+        # reflection needs more pixels than it mirrors; a frame too small for it is padded with its edge
+        mode = "reflect" if min(height, width) > shift else "replicate"
+        moved = self._mirrored(F.pad(x, (shift,) * 4, mode=mode), panoramas)[..., shift:shift + height, shift:shift + width]
+        return (plain + moved) / 2
 
     def _mirrored(self, x: torch.Tensor, panoramas: torch.Tensor | None) -> torch.Tensor:
         light = self.light(panoramas) if self.config.lighting else None

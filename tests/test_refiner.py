@@ -115,9 +115,10 @@ def test_a_refiner_in_config_json_round_trips_and_a_bad_one_or_a_missing_file_is
     for bad in ({"widths": []}, {"widths": [8, -1]}, {"widths": [8], "blocks": 2.5}, {"base": "sharp"}, "wide", {"clips": []}, {"clips": ["shadows"]}, {"clips": [["relit"]]},
                 {"widths": [10 ** 6]}, {"relit_gain": -4}, {"relit_gain": 2.5}, {"strength": 3},
                 {"light_detail": 16}, {"lighting": True, "light_detail": 64}, {"film_encoder": True},
-                {"transport": 8}, {"reshade": True}, {"colour_average": "yes"}):
+                {"transport": 8}, {"reshade": True}, {"colour_average": "yes"}, {"grid_shift": -8}, {"grid_shift": 65},
+                {"grid_shift": True}, {"grid_shift": 2.5}):
         with pytest.raises(InputError, match='has refiner .*; it takes "widths".*"relit_gain".*"transport".*"reshade".*'
-                                             '"colour_average".*"strength"'):
+                                             '"colour_average".*"grid_shift".*"strength"'):
             ModelSpec.from_json({**data, "refiner": bad})
     folder = tmp_path / "model"
     folder.mkdir()
@@ -541,6 +542,37 @@ def test_a_transport_refiner_starts_as_one_without_its_term_a_weighted_mean_of_t
             RefinerConfig.from_dict(bad)
 
 
+def test_a_grid_shifted_refiner_averages_its_correction_with_the_one_for_the_padded_frames_cropped_back():
+    """`grid_shift` s: the mean of the correction for the frames and for the frames reflected s px out on every
+    side, cropped back, so the U-Net's coarse grid falls elsewhere on the scene in the second pass."""
+    torch.manual_seed(11)
+    config = RefinerConfig(widths=(4, 8, 8), blocks=1, base="filtered", clips=("relit",), lighting=True,
+                           flip_average=True, relit_gain=4)
+    plain = Refiner(config)
+    for parameter in plain.parameters():
+        torch.nn.init.normal_(parameter, std=0.2)
+    shifted = Refiner(RefinerConfig.from_dict({**config.to_dict(), "grid_shift": 2}))
+    assert shifted.config.to_dict()["grid_shift"] == 2 and shifted.config.shape == config.shape
+    assert "grid_shift" not in config.to_dict()                      # 0: configs before it read alike
+    shifted.load_state_dict(plain.state_dict())
+    x = torch.rand(2, 15, 16, 20) * 2 - 1
+    light = torch.rand(2, 32, 32, 3) + 0.1
+    with torch.no_grad():
+        out = shifted.correction(x, light)
+        padded = plain.correction(F.pad(x, (2, 2, 2, 2), mode="reflect"), light)
+        assert padded.shape[-2:] == (20, 24)
+        torch.testing.assert_close(out, (plain.correction(x, light) + padded[..., 2:18, 2:22]) / 2)
+        # the grid two pixels off changes the correction: the second pass is not the first again
+        assert (padded[..., 2:18, 2:22] - plain.correction(x, light)).abs().max() > 1e-2
+        # a frame smaller than the shift is padded with its edge and keeps its size; an untrained one adds nothing
+        tiny = torch.rand(1, 15, 2, 3) * 2 - 1
+        assert shifted.correction(tiny, light[:1]).shape == (1, 6, 2, 3)
+        untrained = Refiner(shifted.config)
+        base = torch.rand(1, 3, 16, 20) * 1.6 - 0.8
+        relit, _ = untrained.refine(base, base, base, (base, base), light[:1])
+        torch.testing.assert_close(relit, base)
+
+
 @pytest.mark.parametrize("input_mix", [False, True])
 def test_a_colour_averaged_refiner_treats_every_order_of_the_colour_channels_alike(input_mix):
     torch.manual_seed(10)
@@ -781,9 +813,9 @@ def test_cached_outputs_reuses_the_items_a_file_holds_by_name_direction_and_same
     # Every item held, in another order: nothing is computed (there is no model), the file is rewritten in
     # the items' order and the next call reads it back as it is.
     held = [(1, 0, 0), (0, 0, 1)]
-    first = refine.cached_outputs(path, tmp_path / "no-model", pack, held, log=lambda m: None)
+    first = refine.cached_outputs(path, tmp_path / "no-model", pack, held, log=lambda m: None, copies=1)
     np.testing.assert_array_equal(first["relit"], frames[[0, 3]])
-    again = refine.cached_outputs(path, tmp_path / "no-model", pack, held, log=lambda m: pytest.fail(m))
+    again = refine.cached_outputs(path, tmp_path / "no-model", pack, held, log=lambda m: pytest.fail(m), copies=1)
     np.testing.assert_array_equal(again["albedo"], frames[[0, 3]] + 100)
 
 
@@ -834,3 +866,49 @@ def test_a_refiners_strength_scales_its_correction_and_calibrate_picks_it_per_re
     plain = calibrate.measure_strengths(Relighter(spec, dit, tok), [item], grid=(1.0,))[1.0]
     assert measured[0.0] == pytest.approx(plain, abs=1e-4) and measured[1.0] != pytest.approx(plain, abs=1e-3)
     assert both.refiner.config.strength == both.relit_refiner.config.strength == 1.0
+
+
+def test_the_dits_outputs_for_training_average_the_models_shifted_copies_as_the_relighter_does(tmp_path):
+    """`refine.dit_outputs` gives the refiner what `Relighter` feeds it: with `shift_average` 2 the mean of
+    the copy on the input and the copy on the input rolled by half a token (4 px; the same noise), rolled back; the strip
+    the roll wrapped across the border (the first token row and column of the rolled copy) is the first
+    copy's alone. The outputs file records the count and one made with another is refused."""
+    from relight_core.checkpoint import save_model
+    from relight_core.pipeline import copies_mean
+
+    root = write_pack_dataset(tmp_path / "data", scenes=2)
+    write_pack(root, "train", tmp_path / "p.npz", lighting_size=8)
+    pack = refine.load_packs([tmp_path / "p.npz"])
+    items = [(0, 0, 0), (0, 1, 0), (1, 1, 0)]
+    spec, dit, tok = residual_model()
+    one = save_model(tmp_path / "one", spec, dit, tok)
+    two = save_model(tmp_path / "two", replace(spec, shift_average=2), dit, tok)
+    single = refine.dit_outputs(one, pack, items, log=lambda m: None)
+    both = refine.dit_outputs(two, pack, items, log=lambda m: None)
+    assert single["relit"].shape == both["relit"].shape == (3, 3, 32, 32)
+    for key in ("relit", "albedo"):
+        moved = (both[key].astype(int) - single[key]).__abs__()
+        assert moved[..., 4:-4, 4:-4].mean() > 1                      # the copies changed the frames inside ...
+        assert moved[..., :4, :].max() <= 1 and moved[..., :, -4:].max() <= 1  # ... not the first copy's strip
+    # Built by hand: the DiT's frames on the rolled input, rolled back, averaged without the wrapped strip.
+    rolled = refine.dit_outputs(one, {**pack, "rgb": pack["rgb"].roll((4, 4), dims=(-2, -1)),
+                                      "albedo": pack["albedo"].roll((4, 4), dims=(-2, -1))}, items, log=lambda m: None)
+    for key in ("relit", "albedo"):
+        entries = np.stack([single[key], rolled[key]]).astype(np.float32).transpose(0, 1, 3, 4, 2)
+        by_hand = copies_mean(entries, [(False, (0, 0)), (False, (4, 4))], 8).transpose(0, 3, 1, 2)
+        assert np.abs(by_hand - both[key]).max() <= 1                 # rounding to uint8 once or twice
+    # A DiT that proposes no change gives back its input through the copies, every pixel in its place.
+    with torch.no_grad():
+        dit.final_layer.linear.weight.zero_()
+    still = refine.dit_outputs(save_model(tmp_path / "still", replace(spec, shift_average=2), dit, tok), pack, items,
+                               log=lambda m: None)
+    sources = pack["rgb"][[0, 0, 1], [1, 0, 0]].numpy()
+    assert np.abs(still["relit"].astype(int) - sources).max() <= 3    # what σ 80's skip lets through of the noise
+    # The cache: the count is recorded, the same file serves the same count and refuses another.
+    path = tmp_path / "outputs.npz"
+    refine.cached_outputs(path, two, pack, items, log=lambda m: None)
+    assert int(np.load(path)["copies"]) == 2
+    again = refine.cached_outputs(path, two, pack, items, log=lambda m: pytest.fail(m))
+    np.testing.assert_array_equal(again["albedo"], both["albedo"])
+    with pytest.raises(ValueError, match="averaged over 2 shifted copies and this model runs 1 .*new --out"):
+        refine.cached_outputs(path, one, pack, items[:1], log=lambda m: None)

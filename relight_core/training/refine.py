@@ -3,15 +3,16 @@
     python -m relight_core.training.refine --model models/default --pack train.npz --seen trained-on.npz \
         --scenes 3000 --val-pack val.npz --out runs/refine --minutes 40 --model-dir models/refined
 
-1. **The DiT's outputs.** The model's one-step relit and albedo frames, as `Relighter` decodes them
-   (its residual gains applied), for both directions of the first `--scenes` scenes of the packs that
-   no `--seen` pack holds (scenes the DiT never trained on, so that its errors are those it makes on
-   new photos), and for the validation pack. They are the slow part (~0.25 s an item on one CPU
-   thread) and are kept in `--out/outputs-*.npz`, so a rerun does not repeat them, and a run given
-   more `--scenes` computes only the new ones. `--same-scenes N` adds, for the first N of those scenes
-   and for every validation scene, one item relit to the light it was taken under (the input is the
-   target): a refiner that sees the light learns to leave a photo alone under its own light, which
-   the probe-following margin measures (evaluation.harness).
+1. **The DiT's outputs.** The model's one-step relit and albedo frames, as `Relighter` decodes them (its
+   residual gains applied, its `shift_average` copies averaged), for both directions of the first
+   `--scenes` scenes of the packs that no `--seen` pack holds (scenes the DiT never trained on, so that its
+   errors are those it makes on new photos), and for the validation pack. They are the slow part (~0.25 s
+   an item on one CPU thread and copy) and are kept in `--out/outputs-*.npz`, so a rerun does not repeat
+   them, and a run given more `--scenes` computes only the new ones (a file made with another number of
+   copies is refused). `--same-scenes N` adds, for the first N of those scenes and for every validation
+   scene, one item relit to the light it was taken under (the input is the target): a refiner that sees the
+   light learns to leave a photo alone under its own light, which the probe-following margin measures
+   (evaluation.harness).
 2. **Training.** The refiner learns a correction of those frames towards the rendered truth: per
    item the log of the squared error after the evaluation protocol's per-channel scale fit, plus half
    the log of the plain squared error, on the foreground mask, relit and albedo alike (or the `--clips`
@@ -47,8 +48,9 @@ import numpy as np
 import torch
 from safetensors.torch import load_file, save_file
 
-from relight_core.checkpoint import CONFIG_FILE, DIT_FILE, load_model
+from relight_core.checkpoint import CONFIG_FILE, DIT_FILE, load_model, resolve_model
 from relight_core.evaluation.metrics import protocol_psnr
+from relight_core.pipeline import copies_mean, copy_shifts
 from relight_core.precision import resolve_precision
 from relight_core.refiner import (LIGHT_FEATURES, REFINER_FILE, REFINER_SLOTS, TRANSPORT_LAYERS, Refiner, RefinerConfig,
                                   network_input)
@@ -76,13 +78,17 @@ def unseen_items(names: list[str], seen: list[Path], scenes: int | None, same: i
 
 @torch.no_grad()
 def dit_outputs(model: Path, pack: dict, items: list[tuple[int, int, int]], batch: int = 16,
-                log=print) -> dict[str, np.ndarray]:
+                log=print, copies: int | None = None) -> dict[str, np.ndarray]:
     """The model's relit and albedo frames (uint8 [N,3,H,W]) for `items` (`unseen_items`), as `Relighter`
-    decodes them; an item with same = 1 has the scene under the target light as its input too."""
+    decodes them: its residual gains applied, and with its `shift_average` (or `copies`) copies the mean of
+    the copies run on the input rolled by half a DiT token (`pipeline.copies_mean`); an item with same = 1
+    has the scene under the target light as its input too."""
     spec, dit, _ = load_model(model, "cpu")
     if spec.tokenizer.get("type") != "pixel" or not spec.residual:
         raise ValueError(f"{model} is not a residual pixel-tokenizer model; the refiner is for the default model's kind")
     tokenizer = build_tokenizer(spec.tokenizer)
+    token = tokenizer.spatial_factor * spec.dit.patch_spatial
+    variants = [(False, shift) for shift in copy_shifts(copies or spec.shift_average, token)]
     autocast = resolve_precision("auto", torch.device("cpu")) == torch.bfloat16
     relit, albedo = [], []
     started = time.time()
@@ -96,13 +102,22 @@ def dit_outputs(model: Path, pack: dict, items: list[tuple[int, int, int]], batc
         targets = torch.tensor([t for _, t, _ in part])
         mix = torch.ones(len(part), 2) if part[0][2] else None       # make_batch: the input under the target light
         data = make_batch(pack, tokenizer, scenes, targets, torch.zeros(len(part), dtype=torch.bool), mix)
-        x0 = sample_relight(dit, data, spec.steps, autocast=autocast, residual=True)
+        source = tokenizer.decode(data["input"]).float()              # [B,3,t,H,W]
         t = data["input"].shape[2]
-        source = tokenizer.decode(data["input"])[:, :, 0].float()
-        for clip, gain, out in ((1, spec.residual_gain[0], relit), (2, spec.residual_gain[1], albedo)):
-            frames = tokenizer.decode(x0[:, :, clip * t:(clip + 1) * t].float())[:, :, 0]
-            frames = source + gain * (frames - source)            # the gain Relighter's denoiser applies
-            out.append(((frames.clamp(-1, 1) + 1) * 127.5).round().to(torch.uint8).numpy())
+        entries = {1: [], 2: []}
+        # each copy on the same noise (Relighter draws each its own; the one step from σ 80 barely depends on
+        # it: runs/shift-average/seeds.py); the light stays where it is, as a half-token shift does not turn it
+        for _, shift in variants:
+            inputs = source.roll(shift, dims=(-2, -1))
+            x0 = sample_relight(dit, {**data, "input": tokenizer.encode(inputs)}, spec.steps, autocast=autocast,
+                                residual=True)
+            for clip, gain in ((1, spec.residual_gain[0]), (2, spec.residual_gain[1])):
+                frames = tokenizer.decode(x0[:, :, clip * t:(clip + 1) * t].float())[:, :, 0]
+                frames = inputs[:, :, 0] + gain * (frames - inputs[:, :, 0])  # the gain Relighter's denoiser applies
+                entries[clip].append(frames.clamp(-1, 1).permute(0, 2, 3, 1).numpy())
+        for clip, out in ((1, relit), (2, albedo)):
+            mean = torch.from_numpy(np.ascontiguousarray(copies_mean(np.stack(entries[clip]), variants, token)))
+            out.append(((mean.permute(0, 3, 1, 2) + 1) * 127.5).round().to(torch.uint8).numpy())
         if batches % 25 == 0:
             log(f"DiT outputs: {start + len(part)} of {len(items)} items, {time.time() - started:.0f} s")
         start, batches = start + len(part), batches + 1
@@ -141,13 +156,21 @@ def held_frames(path: Path, rows: list[int | None]) -> dict[str, np.ndarray] | N
     return out
 
 
-def cached_outputs(path: Path, model: Path, pack: dict, items: list[tuple[int, int, int]], log=print) -> dict:
+def cached_outputs(path: Path, model: Path, pack: dict, items: list[tuple[int, int, int]], log=print,
+                   copies: int | None = None) -> dict:
     """`dit_outputs` for `items`, kept in `path`: the items it holds already (by scene name, direction and
-    same) are read from it, only the others are computed, and the file is rewritten with all of them in order."""
+    same) are read from it, only the others are computed, and the file is rewritten with all of them in order.
+    The file records how many shifted copies made them (`copies`, else the model's `shift_average`; a file
+    without the record holds one-copy outputs): one made with another count is refused, not mixed in."""
+    copies = copies or resolve_model(model)[0].shift_average
     names, targets, same = item_keys(pack, items)
     out, missing = None, list(range(len(items)))
     if path.is_file():
         with np.load(path, allow_pickle=False) as z:
+            held = int(z["copies"]) if "copies" in z.files else 1
+            if held != copies:
+                raise ValueError(f"{path} holds the DiT's outputs averaged over {held} shifted copies and this model "
+                                 f"runs {copies} (its shift_average): give the run a new --out")
             if all(np.array_equal(a, b) for a, b in zip(file_keys(z), (names, targets, same))):
                 return {"relit": z["relit"], "albedo": z["albedo"]}
         rows = held_rows(path, names, targets, same)
@@ -155,13 +178,13 @@ def cached_outputs(path: Path, model: Path, pack: dict, items: list[tuple[int, i
         out = held_frames(path, rows)
         log(f"{path} holds {len(items) - len(missing)} of these {len(items)} items; computing the other {len(missing)}")
     if missing:
-        fresh = dit_outputs(model, pack, [items[i] for i in missing], log=log)
+        fresh = dit_outputs(model, pack, [items[i] for i in missing], log=log, copies=copies)
         if out is None:
             out = fresh
         else:
             for key, frames in out.items():
                 frames[missing] = fresh[key]
-    np.savez(path, names=names, targets=targets, same=same, **out)
+    np.savez(path, names=names, targets=targets, same=same, copies=np.int64(copies), **out)
     return out
 
 
