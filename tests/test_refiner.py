@@ -912,3 +912,21 @@ def test_the_dits_outputs_for_training_average_the_models_shifted_copies_as_the_
     np.testing.assert_array_equal(again["albedo"], both["albedo"])
     with pytest.raises(ValueError, match="averaged over 2 shifted copies and this model runs 1 .*new --out"):
         refine.cached_outputs(path, one, pack, items[:1], log=lambda m: None)
+
+
+def test_a_model_folder_from_a_refiner_run_keeps_how_the_model_ran_that_slot_not_its_strength(tmp_path):
+    model, run = tmp_path / "model", tmp_path / "run"
+    model.mkdir()
+    run.mkdir()
+    config = {"name": "m", "refiner": {**SMALL.to_dict(), "grid_shift": 8, "strength": 0.5}}
+    (model / "config.json").write_text(json.dumps(config))
+    for path in (model / "dit.safetensors", model / REFINER_FILE, run / REFINER_FILE):
+        save_file({"w": torch.zeros(1)}, path)
+    best = {"refiner": SMALL.to_dict(), "step": 3, "val": {}, "start": {}, "train_items": 2, "val_items": 1}
+    written = json.loads((refine.write_model(model, run, tmp_path / "out", best) / "config.json").read_text())
+    assert written["refiner"] == {**SMALL.to_dict(), "grid_shift": 8}
+    # a model without it in that slot writes the run's config as it is
+    config["refiner"].pop("grid_shift")
+    (model / "config.json").write_text(json.dumps(config))
+    written = json.loads((refine.write_model(model, run, tmp_path / "out2", best) / "config.json").read_text())
+    assert written["refiner"] == SMALL.to_dict()

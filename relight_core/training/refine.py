@@ -600,7 +600,9 @@ def deepened_state(state: dict[str, torch.Tensor], refiner: Refiner) -> dict[str
 
 def write_model(model: Path, run: Path, folder: Path, best: dict, slot: str = "refiner") -> Path:
     """A model folder: `model`'s DiT, config.json and refiners with the run's refiner added in `slot`
-    ("refiner" or "relit_refiner", `REFINER_SLOTS`; a refiner `model` has in the other slot stays)."""
+    ("refiner" or "relit_refiner", `REFINER_SLOTS`; a refiner `model` has in the other slot stays). The
+    `grid_shift` of the refiner `model` had in `slot` carries over (how it is run, not trained); its strength
+    does not (`training.calibrate --strengths` fits the new one's)."""
     folder.mkdir(parents=True, exist_ok=True)
     config = json.loads((model / CONFIG_FILE).read_text())
     if folder.resolve() != model.resolve():
@@ -609,7 +611,8 @@ def write_model(model: Path, run: Path, folder: Path, best: dict, slot: str = "r
             if other != slot and config.get(other) is not None:
                 shutil.copyfile(model / file, folder / file)
     shutil.copyfile(run / REFINER_FILE, folder / REFINER_SLOTS[slot])
-    config[slot] = best["refiner"]
+    shift = (config.get(slot) or {}).get("grid_shift")
+    config[slot] = {**best["refiner"], **({"grid_shift": shift} if shift else {})}
     config.setdefault("notes", {})[slot] = {k: best[k] for k in ("step", "val", "start", "train_items", "val_items")}
     (folder / CONFIG_FILE).write_text(json.dumps(config, indent=2) + "\n")
     return folder
