@@ -38,6 +38,13 @@ def residual_model():
     return spec, dit, build_tokenizer(spec.tokenizer)
 
 
+def _randomised(refiner: Refiner, std: float) -> Refiner:
+    """`refiner` with every weight drawn from N(0, std²) (seeded by the test): one that changes its frames."""
+    for parameter in refiner.parameters():
+        torch.nn.init.normal_(parameter, std=std)
+    return refiner
+
+
 def test_the_refiner_adds_its_correction_to_the_dit_frames_or_the_filtered_ones_and_stays_out_of_render():
     spec, dit, tok = residual_model()
     frames = np.random.default_rng(1).random((2, 32, 32, 3)).astype(np.float32)
@@ -136,9 +143,7 @@ def test_a_refiner_in_config_json_round_trips_and_a_bad_one_or_a_missing_file_is
 
 def test_a_flip_averaged_refiner_corrects_a_frame_and_its_mirror_image_alike_and_says_so_in_its_config():
     torch.manual_seed(4)
-    plain = Refiner(RefinerConfig(widths=(4, 8), blocks=1, base="filtered", clips=("albedo",)))
-    for parameter in plain.parameters():
-        torch.nn.init.normal_(parameter, std=0.1)
+    plain = _randomised(Refiner(RefinerConfig(widths=(4, 8), blocks=1, base="filtered", clips=("albedo",))), 0.1)
     config = RefinerConfig.from_dict({**plain.config.to_dict(), "flip_average": True})
     assert config.to_dict()["flip_average"] is True and "flip_average" not in plain.config.to_dict()
     averaged = Refiner(config)
@@ -375,9 +380,7 @@ def test_light_features_keep_the_lights_shape_and_colour_not_its_scale():
 def test_a_refiner_that_sees_the_light_starts_as_one_that_does_not_and_mirrors_with_its_light():
     torch.manual_seed(5)
     config = RefinerConfig(widths=(4, 8), blocks=1, base="filtered", clips=("relit",), flip_average=True)
-    blind = Refiner(config)
-    for parameter in blind.parameters():
-        torch.nn.init.normal_(parameter, std=0.1)
+    blind = _randomised(Refiner(config), 0.1)
     lit_config = RefinerConfig.from_dict({**config.to_dict(), "lighting": True})
     assert lit_config.to_dict()["lighting"] is True and lit_config.shape != config.shape
     lit = Refiner(lit_config)
@@ -410,9 +413,7 @@ def test_a_refiner_that_sees_more_of_the_light_starts_from_one_that_sees_less_an
     torch.manual_seed(7)
     config = RefinerConfig(widths=(4, 8, 8), blocks=1, base="filtered", clips=("relit",), flip_average=True,
                            lighting=True, relit_gain=4)
-    coarse = Refiner(config)
-    for parameter in coarse.parameters():
-        torch.nn.init.normal_(parameter, std=0.1)
+    coarse = _randomised(Refiner(config), 0.1)
     save_file(coarse.state_dict(), str(tmp_path / "coarse.safetensors"))
     fine_config = RefinerConfig.from_dict({**config.to_dict(), "light_detail": 16, "film_encoder": True})
     assert fine_config.to_dict()["light_detail"] == 16 and fine_config.to_dict()["film_encoder"] is True
@@ -451,9 +452,7 @@ def test_a_refiner_that_sees_more_of_the_light_starts_from_one_that_sees_less_an
 def test_a_transport_refiner_starts_as_one_without_its_term_a_weighted_mean_of_the_probes_cells_that_learns_the_light(tmp_path):
     torch.manual_seed(8)
     config = RefinerConfig(widths=(4, 8, 8), blocks=1, base="filtered", clips=("relit",), lighting=True, relit_gain=4)
-    plain = Refiner(config)
-    for parameter in plain.parameters():
-        torch.nn.init.normal_(parameter, std=0.1)
+    plain = _randomised(Refiner(config), 0.1)
     save_file(plain.state_dict(), str(tmp_path / "plain.safetensors"))
     transport_config = RefinerConfig.from_dict({**config.to_dict(), "transport": 4})
     assert transport_config.to_dict()["transport"] == 4 and transport_config.shape != config.shape
@@ -548,9 +547,7 @@ def test_a_grid_shifted_refiner_averages_its_correction_with_the_one_for_the_pad
     torch.manual_seed(11)
     config = RefinerConfig(widths=(4, 8, 8), blocks=1, base="filtered", clips=("relit",), lighting=True,
                            flip_average=True, relit_gain=4)
-    plain = Refiner(config)
-    for parameter in plain.parameters():
-        torch.nn.init.normal_(parameter, std=0.2)
+    plain = _randomised(Refiner(config), 0.2)
     shifted = Refiner(RefinerConfig.from_dict({**config.to_dict(), "grid_shift": 2}))
     assert shifted.config.to_dict()["grid_shift"] == 2 and shifted.config.shape == config.shape
     assert "grid_shift" not in config.to_dict()                      # 0: configs before it read alike
@@ -578,9 +575,7 @@ def test_a_colour_averaged_refiner_treats_every_order_of_the_colour_channels_ali
     torch.manual_seed(10)
     config = RefinerConfig(widths=(4, 8, 8), blocks=1, base="filtered", clips=("relit", "albedo"), lighting=True,
                            flip_average=True, relit_gain=4 if input_mix else 0, input_mix=input_mix)
-    plain = Refiner(config)
-    for parameter in plain.parameters():
-        torch.nn.init.normal_(parameter, std=0.2)
+    plain = _randomised(Refiner(config), 0.2)
     averaged = Refiner(RefinerConfig.from_dict({**config.to_dict(), "colour_average": True}))
     assert averaged.config.to_dict()["colour_average"] is True and averaged.config.shape == config.shape
     averaged.load_state_dict(plain.state_dict())
@@ -734,9 +729,7 @@ def test_an_input_mix_refiner_mixes_the_gained_input_into_the_relit_frames_cell_
         refiner.corrected(split, base, albedo)
     # Started from a refiner without the mix (--init): the same weights, the mix's channels at zero — the
     # input's weight sigmoid(−5), so the output moves by under 1% of the input's difference from it.
-    old = Refiner(plain)
-    for parameter in old.parameters():
-        torch.nn.init.normal_(parameter, std=0.1)
+    old = _randomised(Refiner(plain), 0.1)
     save_file({k: v.contiguous() for k, v in old.state_dict().items()}, tmp_path / "old.safetensors")
     assert "input mix new" in refine.initial_weights(refiner, tmp_path / "old.safetensors")
     with torch.no_grad():
