@@ -26,6 +26,7 @@ from relight_core.dit import DIT_PRESETS, DiTConfig, JointDiT
 from relight_core.errors import InputError
 from relight_core.precision import check_precision
 from relight_core.refiner import CONFIG_KEYS as REFINER_CONFIG_KEYS, REFINER_SLOTS, Refiner, RefinerConfig
+from relight_core.temporal import check_settings as check_temporal
 from relight_core.tokenizer import build_tokenizer
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
@@ -59,6 +60,9 @@ class ModelSpec:
     shift_average: int = 1               # copies of each sample run on the frames shifted by half a DiT token
                                          # ((0,0), (h,h), (h,0), (0,h)) and shifted back before the mean: the
                                          # token grid's seams average out (Relighter._members; 1, 2 or 4)
+    temporal_filter: tuple[int, float, float] = (0, 0.05, 0.3)  # (radius in frames, input colour scale, light
+                                         # scale) of the input-guided filter along time on a video's results;
+                                         # radius 0 = off (temporal.py)
     refiner: dict | None = None          # the detail refiner's shape (refiner.RefinerConfig) when the folder
                                          # holds refiner.safetensors; None = no refiner
     relit_refiner: dict | None = None    # a second one (relit_refiner.safetensors), e.g. one that sees the
@@ -100,6 +104,8 @@ class ModelSpec:
         if not isinstance(copies, int) or isinstance(copies, bool) or copies not in SHIFT_AVERAGES:
             raise InputError(f"The model's config.json has shift_average {copies!r}; it takes "
                              f"{', '.join(map(str, SHIFT_AVERAGES))} (copies at half-token shifts), or leave it out.")
+        if "temporal_filter" in kwargs:
+            kwargs["temporal_filter"] = check_temporal(kwargs["temporal_filter"])
         for slot in REFINER_SLOTS:
             if kwargs.get(slot) is not None:
                 try:

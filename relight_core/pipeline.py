@@ -29,7 +29,7 @@ from typing import Iterator
 import numpy as np
 import torch
 
-from relight_core import lighting
+from relight_core import lighting, temporal
 from relight_core.checkpoint import ModelSpec, load_model, load_refiner, resolve_model
 from relight_core.chunking import crossfade_weights, pad_to_valid, plan_chunks, stitch
 from relight_core.costs import CostModel
@@ -116,6 +116,8 @@ class Relighter(CostModel):
         relit_out = np.zeros_like(frames)
         albedo_out = np.zeros_like(frames)
         previous: tuple[int, np.ndarray, np.ndarray] | None = None  # (start, relit, albedo)
+        steady = self.spec.temporal_filter[0] > 0 and num_frames > 1   # the filter along time (temporal.py)
+        lights: dict[int, np.ndarray] = {}   # frame → its target light's descriptor, for that filter
         evals_done, total_evals = 0, len(chunks) * evals_per_chunk
         network_seconds: list[float] = []  # sampler time between previews: the network's share of the run
         eval_started = time.perf_counter()
@@ -136,6 +138,9 @@ class Relighter(CostModel):
             if probe is not None and probe.dim() == 4:  # camera-frame panoramas: this chunk's, padded
                 chunk_probe = probe[start:start + length]
                 chunk_probe = torch.cat([chunk_probe, chunk_probe[-1:].expand(padded.shape[0] - length, -1, -1, -1)])
+            if steady and probe is not None and request.mode in ("relight", "render"):
+                for offset, descriptor in enumerate(self._light_descriptors(request, chunk_probe, rot[:length])):
+                    lights[start + offset] = descriptor
             condition, mask, lighting_latents = self._members(
                 request, padded, albedo_in, chunk_probe, rot, overlap, members)
             t = condition.shape[2] // NUM_CLIPS
@@ -185,6 +190,11 @@ class Relighter(CostModel):
             yield ChunkDone(index, len(chunks), start, relit_chunk, albedo_chunk, relit_out[:end].copy(),
                             albedo_out[:end].copy())
 
+        if steady:  # the results' frame-to-frame mistakes averaged where the input and its light hold still
+            distances = temporal.light_distances(np.stack([lights[i] for i in range(num_frames)])) \
+                if len(lights) == num_frames else None
+            relit_out, albedo_out = temporal.temporal_filter(frames, [relit_out, albedo_out], *self.spec.temporal_filter,
+                                                             distances=distances)
         seconds = time.perf_counter() - started
         if evals_done:
             tokens = NUM_CLIPS * t * (height // self.frame_multiple) * (width // self.frame_multiple)
@@ -390,6 +400,12 @@ class Relighter(CostModel):
             return relit[0], albedo[0]
         variants = self._variants(entries // self.spec.shift_average)
         return copies_mean(relit, variants, self.frame_multiple), copies_mean(albedo, variants, self.frame_multiple)
+
+    def _light_descriptors(self, request: RelightRequest, probe: torch.Tensor, rotations: list[float]) -> np.ndarray:
+        """[T,16,16,3]: each frame's target light as `temporal.light_distances` compares it — the camera-frame
+        panoramas the DiT's lighting is made from (`_lighting_latents`), area-averaged."""
+        camera = lighting.camera_rotation(request.camera_pitch, request.camera_roll)
+        return temporal.light_descriptor(_camera_panoramas(probe, rotations, 32, 64, camera)[:len(rotations)])
 
     def _refiner_light(self, request: RelightRequest, probe: torch.Tensor | None, rotations: list[float],
                        height: int, width: int) -> torch.Tensor | None:

@@ -77,7 +77,8 @@ class Progress:
 class ChunkDone:
     """A chunk has been decoded; `relit`/`albedo` cover [start, start + len) of the video, and
     `stitched_relit`/`stitched_albedo` the whole video so far, [0, start + len), with the chunk
-    cross-faded into the previous ones exactly as the final result will be."""
+    cross-faded into the previous ones exactly as the final result will be — before the filter along time
+    of a model with a `temporal_filter` (temporal.py), which needs the frames after them."""
 
     chunk: int
     num_chunks: int

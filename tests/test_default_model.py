@@ -71,3 +71,33 @@ def test_default_model_beats_the_input_copy_floor_on_held_out_scenes_it_renders(
     for clip in ("relit", "albedo"):
         model, floor = (mean_metrics(records, kind, clip, "psnr") for kind in ("model", "floor"))
         assert model > floor, f"{clip}: model {model:.2f} dB is not above the input-copy floor {floor:.2f} dB"
+
+
+def test_default_model_keeps_the_still_parts_of_a_video_steady():
+    """The example orbit video (a real MP4): the shipped model relights frame by frame, and its temporal filter
+    (`temporal_filter`, relight_core/temporal.py) averages each frame's own mistakes with its neighbours' where the
+    input holds still. Measured on its first 9 frames under the sunset probe, on the 78 % of pixels whose input
+    changes by < 0.02 from one frame to the next: the relit result changed by RMS 0.0113 a frame without the
+    filter (twice the input's own 0.0059), 0.0031 with it; the albedo 0.0152 → 0.0039; the results moved by 0.007
+    on average."""
+    from dataclasses import replace
+
+    root = DEFAULT_MODEL_DIR.parent.parent
+    relighter = Relighter.load("default", device="cpu")
+    assert relighter.spec.temporal_filter[0] > 0
+    frames = media.resize_frames(media.load_media(root / "examples" / "inputs" / "orbit.mp4").frames[:6],
+                                 relighter.spec.size)
+    request = RelightRequest(frames, probe=load_probe(root / "envmaps" / "sunset.exr"))
+    steady = relighter.relight(request)
+    relighter.spec = replace(relighter.spec, temporal_filter=(0,) + relighter.spec.temporal_filter[1:])
+    raw = relighter.relight(request)
+    still = np.abs(np.diff(frames, axis=0)).max(-1) < 0.02
+
+    def change(x):  # RMS frame-to-frame change where the input holds still
+        return float(np.sqrt((np.diff(x, axis=0) ** 2).mean(-1)[still].mean()))
+
+    assert still.mean() > 0.5
+    for clip in ("relit", "albedo"):
+        a, b = getattr(steady, clip), getattr(raw, clip)
+        assert change(a) < 0.5 * change(b) and change(a) < change(frames), (clip, change(a), change(b))
+        assert np.abs(a - b).mean() < 0.02

@@ -224,6 +224,43 @@ def test_fast_training_exports_a_model_the_relighter_runs(tmp_path):
     assert np.isfinite(result.albedo).all()
 
 
+def test_accumulate_steps_once_on_the_mean_gradient_of_its_micro_batches(tmp_path, monkeypatch):
+    """--accumulate k: each optimizer step draws k micro-batches and uses the mean of their gradients."""
+    import relight_core.training.fast as fast
+    root = write_pack_dataset(tmp_path / "data")
+    write_pack(root, "train", tmp_path / "p.npz", lighting_size=8)
+    micro, steps = [], []                      # per micro-batch: (items, grad of the head); per step: its grad
+    original_loss, original_clip = fast.denoising_loss, torch.nn.utils.clip_grad_norm_
+
+    def loss_spy(net, example, recipe, generator):
+        loss, sigma = original_loss(net, example, recipe, generator)
+        head = net.final_layer.linear.weight
+        micro.append((example.x0.shape[0], torch.autograd.grad(loss, head, retain_graph=True)[0].clone()))
+        return loss, sigma
+
+    def clip_spy(parameters, max_norm, *args, **kwargs):
+        parameters = list(parameters)
+        head = next(p for p in parameters if p.shape[0] == 192 and p.dim() == 2 and p.shape[1] == 32)
+        steps.append(head.grad.clone())
+        return original_clip(parameters, max_norm, *args, **kwargs)
+
+    monkeypatch.setattr(fast, "denoising_loss", loss_spy)
+    monkeypatch.setattr(torch.nn.utils, "clip_grad_norm_", clip_spy)
+    summary = train(FastConfig(pack=tmp_path / "p.npz", out=tmp_path / "run", minutes=0.03, device="cpu", batch=2,
+                               accumulate=3, width=32, depth=1, num_heads=2, log_every=1, eval_items=2,
+                               eval_steps=1, warmup=1))
+    assert summary["steps"] >= 1 and len(steps) == summary["steps"] and len(micro) == 3 * summary["steps"]
+    assert summary["samples_seen"] == 6 * summary["steps"] and {n for n, _ in micro} == {2}
+    for i, grad in enumerate(steps):
+        parts = [g for _, g in micro[3 * i:3 * i + 3]]
+        assert not torch.allclose(parts[0], parts[1])          # each micro-batch draws its own items and noise
+        mean = sum(parts) / 3                                   # to bf16's rounding where autocast runs
+        assert (grad - mean).norm() <= 1e-2 * mean.norm() and (grad - parts[0]).norm() > 0.1 * mean.norm()
+    assert json.loads((tmp_path / "run" / "model" / "config.json").read_text())["notes"]["batch"] == 6
+    with pytest.raises(SystemExit):
+        main(["--pack", str(tmp_path / "p.npz"), "--out", str(tmp_path / "bad"), "--accumulate", "0"])
+
+
 def test_a_residual_models_offset_filter_smooths_what_it_changed_and_scales_with_the_size():
     torch.manual_seed(0)
     config = DiTConfig(width=32, depth=1, num_heads=2, patch_spatial=1, patch_temporal=1, out_channels=192,

@@ -65,6 +65,7 @@ class FastConfig:
     minutes: float = 7.0
     device: str = "auto"                 # cuda when available, else cpu
     batch: int = 128
+    accumulate: int = 1                  # micro-batches of `batch` items per optimizer step (a CPU's big batch)
     lr: float = 4e-4
     min_lr_fraction: float = 0.1         # cosine decay over the time budget down to this fraction
     warmup: int = 200
@@ -410,20 +411,13 @@ def train(config: FastConfig) -> dict:
     last_val, validated = time.time(), None
     if val is not None and not best:
         validate()
-    notes = {"recipe": asdict(config.recipe), "batch": config.batch, "lr": config.lr}
+    notes = {"recipe": asdict(config.recipe), "batch": config.batch * config.accumulate, "lr": config.lr}
     if config.mix_lights > 0:
         notes["mix_lights"] = config.mix_lights
     if config.crop > 0:
         notes["crop"] = {"share": config.crop, "smallest": config.crop_min}
-    while True:
-        elapsed = time.time() - train_started
-        if elapsed > budget:
-            break
-        progress = elapsed / budget
-        lr = config.lr * min(1.0, (step + 1) / config.warmup)
-        lr *= config.min_lr_fraction + (1 - config.min_lr_fraction) * 0.5 * (1 + math.cos(math.pi * progress))
-        for group in optimizer.param_groups:
-            group["lr"] = lr
+    def micro_step() -> torch.Tensor:
+        """Draw `batch` items, backpropagate their loss / accumulate; returns the loss (detached)."""
         indices = torch.randint(0, n, (config.batch,), generator=generator, device=device)
         target = torch.randint(0, 2, (config.batch,), generator=generator, device=device)
         flip = torch.rand(config.batch, generator=generator, device=device) < 0.5
@@ -438,11 +432,26 @@ def train(config: FastConfig) -> dict:
             batch = make_batch(pack, tokenizer, indices, target, flip, mix)
         example = make_example(batch["input"], batch["relit"], batch["albedo"], batch["lighting"],
                                config.recipe, generator)
+        with torch.autocast(device.type, dtype=torch.bfloat16, enabled=autocast):
+            loss, _ = denoising_loss(net, example, config.recipe, generator)
+        (loss / config.accumulate).backward()
+        return loss.detach()
+
+    while True:
+        elapsed = time.time() - train_started
+        if elapsed > budget:
+            break
+        progress = elapsed / budget
+        lr = config.lr * min(1.0, (step + 1) / config.warmup)
+        lr *= config.min_lr_fraction + (1 - config.min_lr_fraction) * 0.5 * (1 + math.cos(math.pi * progress))
+        for group in optimizer.param_groups:
+            group["lr"] = lr
+        optimizer.zero_grad(set_to_none=True)
         try:
-            with torch.autocast(device.type, dtype=torch.bfloat16, enabled=autocast):
-                loss, _ = denoising_loss(net, example, config.recipe, generator)
-            optimizer.zero_grad(set_to_none=True)
-            loss.backward()
+            loss = micro_step()
+            for _ in range(config.accumulate - 1):  # the gradient of accumulate × batch items, one step
+                loss = loss + micro_step()
+            loss = loss / config.accumulate
         except Exception as exc:  # a compiler failure costs one step, not the run
             if net is dit:
                 raise
@@ -453,7 +462,7 @@ def train(config: FastConfig) -> dict:
         optimizer.step()
         ema.update(dit, step)
         step += 1
-        losses.append(loss.detach())
+        losses.append(loss)
         if step % config.log_every == 0:
             mean = float(torch.stack(losses).mean())
             losses = []
@@ -486,7 +495,7 @@ def train(config: FastConfig) -> dict:
         quality["test"] = sampled_quality(ema_model, test, tokenizer, config.eval_items, config.eval_steps,
                                           autocast, residual)
     summary = {"steps": step, "train_items": n, "train_seconds": round(train_seconds, 1),
-               "samples_seen": step * config.batch, "device": str(device), "params": params,
+               "samples_seen": step * config.batch * config.accumulate, "device": str(device), "params": params,
                "sampled_psnr": quality,
                "date": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")}
     if val is not None:
@@ -525,7 +534,7 @@ def main(argv: list[str] | None = None) -> None:
                         help="the smallest crop's side, as a fraction of the frame's (--crop); never below "
                              "--train-size, a crop is not enlarged")
     defaults = FastConfig(pack=Path(), out=Path())
-    for name in ("minutes", "device", "batch", "lr", "warmup", "ema_decay", "width", "depth", "num_heads",
+    for name in ("minutes", "device", "batch", "accumulate", "lr", "warmup", "ema_decay", "width", "depth", "num_heads",
                  "seed", "log_every", "eval_items", "eval_steps", "export_every_minutes", "export_steps",
                  "checkpoint_every_minutes", "val_every_minutes", "val_items"):
         value = getattr(defaults, name)
@@ -536,6 +545,8 @@ def main(argv: list[str] | None = None) -> None:
                         help="loss weight of the albedo clip (the paper's 0.1)")
     args = vars(parser.parse_args(argv))
     args["pack"] = args["pack"][0] if len(args["pack"]) == 1 else tuple(args["pack"])
+    if args["accumulate"] < 1 or args["batch"] < 1:
+        parser.error(f"--batch and --accumulate are counts of at least 1; got {args['batch']} and {args['accumulate']}")
     if not 0 <= args["mix_lights"] <= 1:
         parser.error(f"--mix-lights is a share of items, from 0 to 1; got {args['mix_lights']}")
     if not 0 <= args["crop"] <= 1 or not 0 < args["crop_min"] <= 1:
