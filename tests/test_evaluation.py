@@ -18,7 +18,7 @@ from relight_core.errors import InputError
 from relight_core.evaluation import protocol_metrics, psnr, scale_fit, ssim
 from relight_core.evaluation.harness import (RunOptions, load_items, measure_item, probe_margin, relight, resized,
                                              sigma_errors)
-from relight_core.evaluation.metrics import albedo_metrics, delta_e2000, protocol_psnr
+from relight_core.evaluation.metrics import albedo_metrics, delta_e2000, protocol_psnr, steadiness
 from relight_core.pipeline import Relighter, RelightRequest
 from relight_core.tokenizer import build_tokenizer
 from tests.factory import awake
@@ -97,8 +97,26 @@ def test_albedo_metrics_add_the_colour_difference_after_the_scale_fit():
     tinted = albedo.copy()
     tinted[..., 0] = albedo[..., 1]                     # a hue error no per-channel scale removes
     metrics = albedo_metrics(tinted, albedo)
-    assert set(metrics) == {"psnr", "ssim", "delta_e2000"} and metrics["delta_e2000"] > 2
+    assert set(metrics) == {"psnr", "ssim", "delta_e2000", "temporal", "flicker"} and metrics["delta_e2000"] > 2
     assert metrics["psnr"] == protocol_metrics(tinted, albedo)["psnr"]
+
+
+def test_steadiness_of_a_clip_against_values_computed_by_hand():
+    truth = np.full((2, 4, 4, 3), 0.5)
+    d = 0.1
+    pred = np.stack([np.full((4, 4, 3), 0.5 - d), np.full((4, 4, 3), 0.5 + d)])   # brightens against its truth
+    s = 0.5 / (0.5 + 2 * d ** 2)                        # the scale fit: Σ p·t / Σ p² over both frames
+    metrics = protocol_metrics(pred, truth)
+    assert metrics["temporal"] == pytest.approx(2 * d * s) and metrics["flicker"] == pytest.approx(2 * d * s)
+    mask = np.ones((2, 4, 4))
+    mask[1, :2] = 0                                     # only pixels in the mask of both frames count
+    moving = truth.copy()
+    moving[1, :2] = 1.0                                 # a change where frame 1's mask is 0: not counted
+    steady = steadiness(truth, moving, mask)
+    assert steady["temporal"] == pytest.approx(0.0) and steady["flicker"] == pytest.approx(0.0)
+    still = protocol_metrics(0.5 * moving, moving)      # a steady clip, off by a scale only
+    assert still["temporal"] == pytest.approx(0.0, abs=1e-9) and still["flicker"] == pytest.approx(0.0, abs=1e-9)
+    assert "flicker" not in protocol_metrics(pred[0], truth[0])                    # an image has no steadiness
 
 
 def test_ssim_of_constant_images_and_of_identical_ones():
@@ -363,6 +381,11 @@ def test_evaluate_end_to_end_on_the_tiny_preset(dataset, tmp_path, capsys):
     assert full["oracle"]["relit"]["plain"]["psnr"] > full["model"]["relit"]["plain"]["psnr"]   # truth beats noise
     report = (out / "metrics.md").read_text()
     assert "| albedo ΔE2000 |" in report and f"| {test['model']['albedo']['delta_e2000']:.2f} |" in report
+    clips = results["data"]["frames"] > 1               # clips are also scored for how steady they are
+    assert ("| relit flicker |" in report) == clips == ("flicker" in test["model"]["relit"])
+    if clips:
+        assert f"| {255 * test['model']['relit']['temporal']:.2f} | {255 * test['model']['relit']['flicker']:.2f} |" \
+            in report
     for heading in ("| model |", "floor: input returned unchanged", "ceiling: tokenizer", "Probe-following margin",
                     "Train-set reproduction", "Steps vs quality", "Denoiser error per σ", "Full-resolution output"):
         assert heading in report
@@ -396,6 +419,25 @@ def test_measuring_at_another_size_runs_the_model_at_its_own_and_brings_results_
     at_model_size = resized(big, 64, 8)
     np.testing.assert_array_equal(ceiling(relighter, at_model_size.target, at_model_size.input),
                                   reconstruct(relighter, at_model_size.target))
+
+
+def test_evaluate_scores_how_steady_a_clip_is(tmp_path):
+    write_dataset(tmp_path / "clips", "test", scenes=1, frames=3)
+    out = tmp_path / "eval-clips"
+    assert main(["evaluate", "--data", str(tmp_path / "clips"), "--model", "tiny", "--steps", "1", "--limit", "2",
+                 "--train-items", "0", "--sigma-items", "0", "--no-grids", "--out", str(out)]) == 0
+    results = json.loads((out / "metrics.json").read_text())
+    assert results["data"]["frames"] == 3
+    items = [resized(i, results["data"]["measured_size"][0], 8) for i in load_items(tmp_path / "clips", "test")]
+    floors = [protocol_metrics(i.input, i.target, i.mask) for i in items]     # the floor, by hand, where measured
+    for name in ("temporal", "flicker"):
+        assert results["test"]["floor"]["relit"][name] == pytest.approx(np.mean([f[name] for f in floors]), abs=1e-9)
+    assert results["test"]["floor"]["relit"]["flicker"] > 0 and "flicker" in results["test"]["model"]["albedo"]
+    report = (out / "metrics.md").read_text()
+    row = results["test"]["floor"]
+    assert (f"| floor: input returned unchanged | {255 * row['relit']['temporal']:.2f} | "
+            f"{255 * row['relit']['flicker']:.2f} | {255 * row['albedo']['temporal']:.2f} | "
+            f"{255 * row['albedo']['flicker']:.2f} |") in report
 
 
 def test_evaluate_at_a_larger_size_measures_there(dataset, tmp_path):

@@ -15,7 +15,9 @@ minimization before computing the metrics", and masks the background of syntheti
   mask pixels and over the channels, then over frames;
 * `delta_e2000`: the mean CIEDE2000 colour difference (colour-science: sRGB display values → CIE
   Lab under D65) over the frame's mask pixels, averaged over frames; `albedo_metrics` adds it,
-  on the scale-fitted albedo, to the PSNR/SSIM protocol.
+  on the scale-fitted albedo, to the PSNR/SSIM protocol;
+* `steadiness` (clips of > 1 frame, in both): the temporal error and the flicker of the scale-fitted clip
+  against its truth (runs/video-temporal/: an image model run frame by frame flickers).
 """
 
 from __future__ import annotations
@@ -116,10 +118,29 @@ def delta_e2000(pred, target, mask=None) -> float:
     return float(per_frame.mean())
 
 
+def steadiness(fitted, target, mask=None) -> dict[str, float]:
+    """{"temporal", "flicker"} of a clip of > 1 frame ({} for an image), `fitted` already scale-fitted:
+    "temporal" the RMS, over the pixels in the mask of both frames, of (fitted[t+1] − fitted[t]) −
+    (target[t+1] − target[t]) — what changes between frames that should not, or does not that should;
+    "flicker" the RMS over t and channels of the change of the mean error (fitted − target) on the mask
+    from frame to frame — a clip that brightens and darkens against its truth."""
+    p, t = _frames(fitted), _frames(target)
+    if p.shape[0] < 2:
+        return {}
+    m = _mask(mask, p.shape)
+    both = m[1:] * m[:-1]
+    change = (p[1:] - p[:-1]) - (t[1:] - t[:-1])
+    temporal = math.sqrt(float((both[..., None] * change ** 2).sum() / (3 * max(both.sum(), 1.0))))
+    level = (m[..., None] * (p - t)).sum(axis=(1, 2)) / np.maximum(m.sum(axis=(1, 2)), 1.0)[:, None]   # [T,3]
+    return {"temporal": temporal, "flicker": math.sqrt(float((np.diff(level, axis=0) ** 2).mean()))}
+
+
 def protocol_metrics(pred, target, mask=None) -> dict[str, float]:
-    """{"psnr", "ssim"} of pred against target after the per-channel scale fit on the mask."""
+    """{"psnr", "ssim"} of pred against target after the per-channel scale fit on the mask; for a clip
+    also its `steadiness` ("temporal", "flicker")."""
     fitted, _ = scale_fit(pred, target, mask)
-    return {"psnr": psnr(fitted, target, mask), "ssim": ssim(fitted, target, mask)}
+    return {"psnr": psnr(fitted, target, mask), "ssim": ssim(fitted, target, mask),
+            **steadiness(fitted, target, mask)}
 
 
 def protocol_psnr(pred, target, mask=None) -> float:
@@ -131,4 +152,4 @@ def albedo_metrics(pred, target, mask=None) -> dict[str, float]:
     """`protocol_metrics` plus "delta_e2000" of the same scale-fitted prediction."""
     fitted, _ = scale_fit(pred, target, mask)
     return {"psnr": psnr(fitted, target, mask), "ssim": ssim(fitted, target, mask),
-            "delta_e2000": delta_e2000(fitted, target, mask)}
+            "delta_e2000": delta_e2000(fitted, target, mask), **steadiness(fitted, target, mask)}

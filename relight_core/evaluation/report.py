@@ -76,6 +76,14 @@ def _quality_table(summary: dict) -> list[str]:
         row = summary.get(key) or {}
         lines.append(f"| {label} | {_pair(row.get('relit'))} | {_pair(row.get('albedo'))} | "
                      f"{_delta_e(row.get('albedo'))} |")
+    if "flicker" in ((summary.get("model") or {}).get("relit") or {}):   # clips: how steady, in levels of 255
+        lines += ["", "| clips, ×255 | relit temporal error | relit flicker | albedo temporal error | albedo flicker |",
+                  "|---|---|---|---|---|"]
+        for key, label in (("model", "model"), ("floor", "floor: input returned unchanged")):
+            row = summary.get(key) or {}
+            cells = [f"{255 * (row.get(clip) or {}).get(name, float('nan')):.2f}"
+                     for clip in ("relit", "albedo") for name in ("temporal", "flicker")]
+            lines.append(f"| {label} | " + " | ".join(cells) + " |")
     return lines
 
 

@@ -18,31 +18,15 @@ import numpy as np
 import torch
 
 from relight_core.evaluation.harness import RunOptions, load_items, relight
-from relight_core.evaluation.metrics import protocol_metrics, scale_fit
+from relight_core.evaluation.metrics import protocol_metrics
 
 torch.set_num_threads(int(os.environ.get("T", "2")))
 
 
-def temporal_error(pred: np.ndarray, truth: np.ndarray, mask: np.ndarray) -> float:
-    """RMS of the frame-to-frame change of `pred` (scale-fitted onto `truth`) minus that of `truth`, on the mask."""
-    fitted, _ = scale_fit(pred, truth, mask)
-    both = (mask[1:] > 0.5) & (mask[:-1] > 0.5)
-    diff = (fitted[1:] - fitted[:-1]) - (truth[1:] - truth[:-1])
-    return float(np.sqrt((diff ** 2)[both].mean()))
-
-
-def flicker(pred: np.ndarray, truth: np.ndarray, mask: np.ndarray) -> float:
-    """Frame-to-frame change of the mean error level: the RMS over t of the change of mean(fitted − truth)
-    on the mask, per channel — a clip that brightens and darkens against its truth."""
-    fitted, _ = scale_fit(pred, truth, mask)
-    level = np.array([[(fitted[t] - truth[t])[mask[t] > 0.5][:, c].mean() for c in range(3)]
-                      for t in range(len(truth))])
-    return float(np.sqrt((np.diff(level, axis=0) ** 2).mean()))
-
-
 def score(pred, truth, mask) -> dict:
-    return {"psnr": protocol_metrics(pred, truth, mask)["psnr"], "temporal": temporal_error(pred, truth, mask),
-            "flicker": flicker(pred, truth, mask)}
+    """PSNR by the protocol and the clip's steadiness (`metrics.steadiness`: "temporal", "flicker")."""
+    metrics = protocol_metrics(pred, truth, mask)
+    return {key: metrics[key] for key in ("psnr", "temporal", "flicker")}
 
 
 def main() -> None:
