@@ -88,6 +88,9 @@ def _add_model_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", required=True, type=Path, help="output folder")
     p.add_argument("--raw", action="store_true",
                    help="write the model-size output as it is (default: guided upsampling to the input's resolution)")
+    p.add_argument("--per-frame", action="store_true",
+                   help="a video's frames as the model made them, without the model's filter along time "
+                        "(default: a model with a temporal_filter steadies them)")
 
 
 def _add_probe_args(p: argparse.ArgumentParser, required: bool) -> None:
@@ -218,7 +221,8 @@ def _media_job(args):
                     temperature=getattr(args, "temperature", None), tint=getattr(args, "tint", 0.0),
                     camera_pitch=getattr(args, "camera_pitch", 0.0), camera_roll=getattr(args, "camera_roll", 0.0),
                     seeds=tuple(getattr(args, "seeds", None) or (getattr(args, "seed", 0),)), steps=args.steps,
-                    sampler=args.sampler, guidance=args.guidance, ensemble=args.ensemble, size=args.size, frames=args.frames, raw=args.raw)
+                    sampler=args.sampler, guidance=args.guidance, ensemble=args.ensemble, size=args.size, frames=args.frames, raw=args.raw,
+                    per_frame=getattr(args, "per_frame", False))
 
 
 def _run_media_command(args) -> int:

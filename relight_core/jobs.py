@@ -41,6 +41,7 @@ class MediaJob:
     size: int | None = None                     # working long side; None: the model's
     frames: tuple[int, int | None] = (0, None)  # frame range of a video, END exclusive
     raw: bool = False                           # write the model-size output (no guided upsampling)
+    per_frame: bool = False                     # skip the model's temporal filter (RelightRequest.per_frame)
 
 
 @dataclass(frozen=True)
@@ -81,7 +82,7 @@ def plan_job(job: MediaJob, relighter: Relighter, inputs: JobInputs) -> JobPlan:
     frames = media.resize_frames(source.frames, size, multiple=relighter.frame_multiple)
     base = dict(fps=source.fps, audio_path=source.audio_path, audio_start=source.audio_start, steps=job.steps,
                 sampler=job.sampler, guidance=job.guidance, ensemble=job.ensemble, mode=job.mode, probe=inputs.probe,
-                intensity=job.intensity)
+                intensity=job.intensity, per_frame=job.per_frame)
     if job.rotation is not None:
         base["rotation"] = job.rotation
     if job.rotate_light:

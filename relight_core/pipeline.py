@@ -116,7 +116,7 @@ class Relighter(CostModel):
         relit_out = np.zeros_like(frames)
         albedo_out = np.zeros_like(frames)
         previous: tuple[int, np.ndarray, np.ndarray] | None = None  # (start, relit, albedo)
-        steady = self.spec.temporal_filter[0] > 0 and num_frames > 1   # the filter along time (temporal.py)
+        steady = self.spec.temporal_filter[0] > 0 and num_frames > 1 and not request.per_frame  # temporal.py
         lights: dict[int, np.ndarray] = {}   # frame → its target light's descriptor, for that filter
         evals_done, total_evals = 0, len(chunks) * evals_per_chunk
         network_seconds: list[float] = []  # sampler time between previews: the network's share of the run

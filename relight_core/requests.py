@@ -47,6 +47,8 @@ class RelightRequest:
     seed: int = 0
     guidance: float = 0.0
     ensemble: int | None = None           # samples averaged into the result; None: the model's default
+    per_frame: bool = False               # True: a video's frames as the model made them, without the model's
+                                          # temporal_filter (temporal.py)
     should_stop: Callable[[], bool] | None = None
 
 

@@ -108,3 +108,27 @@ def test_the_setting_round_trips_through_config_json_and_bad_values_are_refused_
     for bad in ([3, 0.08], [-1, 0.1, 0.3], [3, 0, 0.3], [3, float("nan"), 0.3], [True, 0.1, 0.3], "3", [17, 0.1, 1]):
         with pytest.raises(InputError, match="temporal_filter"):
             ModelSpec.from_json({**spec.to_json(), "temporal_filter": bad})
+
+
+def test_per_frame_skips_the_filter_from_the_cli_down_to_the_pipeline(tmp_path):
+    from relight_core import media
+    from relight_core.cli import _media_job, build_parser
+    from relight_core.jobs import load_inputs, plan_job
+    from tests.factory import write_exr
+
+    relighter = _relighter((2, 0.05, 0.3))
+    rng = np.random.default_rng(3)
+    frames = np.clip(rng.random((1, 32, 32, 3)) + rng.normal(0, 0.01, (4, 32, 32, 3)), 0, 1).astype(np.float32)
+    request = RelightRequest(frames=frames, probe=np.ones((16, 32, 3), np.float32))
+    steady, raw = relighter.relight(request), relighter.relight(RelightRequest(**{**vars(request), "per_frame": True}))
+    np.testing.assert_allclose(raw.relit, _relighter((0, 0.05, 0.3)).relight(request).relit, atol=1e-6)
+    assert not np.allclose(steady.relit, raw.relit, atol=1e-3)
+    video = tmp_path / "clip.mp4"
+    media.save_video(video, frames, 12.0)
+    write_exr(tmp_path / "probe.exr", np.ones((16, 32, 3), np.float32))
+    for flags, expected in (([], False), (["--per-frame"], True)):
+        args = build_parser().parse_args(["relight", str(video), "--probe", str(tmp_path / "probe.exr"),
+                                          "--out", str(tmp_path / "out"), *flags])
+        job = _media_job(args)
+        plan = plan_job(job, relighter, load_inputs(job))
+        assert job.per_frame is expected and all(r.per_frame is expected for _, r in plan.requests)
