@@ -191,8 +191,8 @@ class Relighter(CostModel):
                             albedo_out[:end].copy())
 
         if steady:  # the results' frame-to-frame mistakes averaged where the input and its light hold still
-            distances = temporal.light_distances(np.stack([lights[i] for i in range(num_frames)])) \
-                if len(lights) == num_frames else None
+            distances = temporal.light_distances(np.stack([lights[i] for i in range(num_frames)]),
+                                                 self.spec.temporal_filter[0]) if len(lights) == num_frames else None
             relit_out, albedo_out = temporal.temporal_filter(frames, [relit_out, albedo_out], *self.spec.temporal_filter,
                                                              distances=distances)
         seconds = time.perf_counter() - started

@@ -43,32 +43,53 @@ def light_descriptor(panoramas: torch.Tensor) -> np.ndarray:
     return lighting.downsample_panorama(panoramas.float(), size).numpy()
 
 
-def light_distances(descriptors: np.ndarray) -> np.ndarray:
-    """[T,T]: the mean absolute difference of two frames' light descriptors over their mean brightness —
-    0 for the same light; a sun turned by 45° gives ~0.4 (the test clips' light rotation)."""
+def light_distances(descriptors: np.ndarray, radius: int) -> np.ndarray:
+    """[radius, T]: row k − 1 holds, at t, the distance of frame t's light to frame t + k's (0 past the end) —
+    the mean absolute difference of their descriptors over their mean brightness: 0 for the same light, ~0.45
+    between frames of the test clips' light rotation. Memory grows with T · radius, not T²."""
     flat = descriptors.reshape(len(descriptors), -1).astype(np.float64)
     level = np.maximum(flat.mean(axis=1), 1e-12)
-    diff = np.abs(flat[:, None, :] - flat[None, :, :]).mean(axis=2)
-    return diff / (0.5 * (level[:, None] + level[None, :]))
+    out = np.zeros((radius, len(flat)))
+    for k in range(1, min(radius, len(flat) - 1) + 1):
+        out[k - 1, :-k] = np.abs(flat[k:] - flat[:-k]).mean(axis=1) / (0.5 * (level[k:] + level[:-k]))
+    return out
 
 
 def temporal_filter(guide: np.ndarray, outputs: list[np.ndarray], radius: int, sigma: float, light: float,
-                    distances: np.ndarray | None = None) -> list[np.ndarray]:
+                    distances: np.ndarray | None = None, block: int = 32) -> list[np.ndarray]:
     """Each of `outputs` ([T,H,W,C], like `guide` [T,H,W,3]) filtered along time (module docstring);
-    `distances` [T,T] from `light_distances`, None when every frame has the same light."""
+    `distances` [≥ radius, T] from `light_distances`, None when every frame has the same light. Works through the
+    video `block` frames at a time (each with its `radius` neighbours), so a long video needs only a few
+    blocks' worth of memory beyond its results; the blocks change nothing in the result."""
     guide = np.asarray(guide, np.float32)
     frames = guide.shape[0]
+    outputs = [np.asarray(o) for o in outputs]
     if radius == 0 or frames < 2:
-        return [np.asarray(o) for o in outputs]
-    sums = [np.asarray(o, np.float32).copy() for o in outputs]   # the frame itself, weight 1
+        return outputs
+    results = [np.empty_like(o) for o in outputs]
+    for start in range(0, frames, block):
+        end = min(frames, start + block)
+        lo, hi = max(0, start - radius), min(frames, end + radius)
+        near = None if distances is None else distances[:, lo:hi]
+        parts = _filtered(guide[lo:hi], [o[lo:hi] for o in outputs], radius, sigma, light, near)
+        for result, part in zip(results, parts):
+            result[start:end] = part[start - lo:end - lo]
+    return results
+
+
+def _filtered(guide: np.ndarray, outputs: list[np.ndarray], radius: int, sigma: float, light: float,
+              distances: np.ndarray | None) -> list[np.ndarray]:
+    """`temporal_filter` of a whole (short) clip at once."""
+    frames = guide.shape[0]
+    sums = [o.astype(np.float32) for o in outputs]               # the frame itself, weight 1
     weights = np.ones(guide.shape[:3] + (1,), np.float32)
     for k in range(1, min(radius, frames - 1) + 1):
         w = np.exp(-((guide[k:] - guide[:-k]) ** 2).sum(-1, keepdims=True) / (2 * sigma ** 2))
         if distances is not None:
-            w = w * np.exp(-(np.diagonal(distances, k) / light) ** 2).astype(np.float32)[:, None, None, None]
+            w = w * np.exp(-(distances[k - 1, :-k] / light) ** 2).astype(np.float32)[:, None, None, None]
         for total, o in zip(sums, outputs):
             total[:-k] += w * o[k:]          # frame t gains frame t + k …
             total[k:] += w * o[:-k]          # … and frame t + k gains frame t, with the same weight
         weights[:-k] += w
         weights[k:] += w
-    return [(total / weights).astype(np.asarray(o).dtype) for total, o in zip(sums, outputs)]
+    return [(total / weights).astype(o.dtype) for total, o in zip(sums, outputs)]

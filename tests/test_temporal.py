@@ -16,11 +16,24 @@ def test_two_frames_mix_by_the_weight_computed_by_hand():
     rng = np.random.default_rng(0)
     guide = rng.random((2, 4, 5, 3)).astype(np.float32)
     out = rng.random((2, 4, 5, 3)).astype(np.float32)
-    distances = np.array([[0.0, 0.2], [0.2, 0.0]])
+    distances = np.array([[0.2, 0.0]])                  # frame 0 to frame 1: 0.2
     (got,) = temporal_filter(guide, [out], radius=1, sigma=0.3, light=0.5, distances=distances)
     w = np.exp(-((guide[0] - guide[1]) ** 2).sum(-1, keepdims=True) / (2 * 0.3 ** 2)) * np.exp(-(0.2 / 0.5) ** 2)
     np.testing.assert_allclose(got[0], (out[0] + w * out[1]) / (1 + w), rtol=1e-5)
     np.testing.assert_allclose(got[1], (out[1] + w * out[0]) / (1 + w), rtol=1e-5)
+
+
+def test_a_long_video_filtered_in_blocks_is_the_same_as_in_one_go():
+    rng = np.random.default_rng(4)
+    guide = rng.random((23, 6, 5, 3)).astype(np.float32) * 0.1
+    out = rng.random((23, 6, 5, 3)).astype(np.float32)
+    turned = np.tile(np.array([[0.1], [0.2], [0.3]]), (1, 23)) * rng.random(23)
+    whole = temporal_filter(guide, [out, out[..., :1]], 3, 0.08, 0.3, distances=turned, block=1000)
+    for block in (1, 4, 7):
+        blocks = temporal_filter(guide, [out, out[..., :1]], 3, 0.08, 0.3, distances=turned, block=block)
+        for a, b in zip(whole, blocks):
+            np.testing.assert_allclose(a, b, rtol=1e-6)
+    assert not np.allclose(whole[0], out, atol=1e-2)
 
 
 def test_a_still_input_averages_away_each_frames_own_mistakes_and_keeps_what_moves():
@@ -43,10 +56,10 @@ def test_a_still_input_averages_away_each_frames_own_mistakes_and_keeps_what_mov
 def test_frames_under_another_light_keep_their_own_results():
     guide = np.zeros((3, 4, 4, 3), np.float32)
     out = np.stack([np.full((4, 4, 3), v, np.float32) for v in (0.1, 0.5, 0.9)])
-    turned = np.array([[0, 5.0, 5.0], [5.0, 0, 5.0], [5.0, 5.0, 0]])
+    turned = np.array([[5.0, 5.0, 0], [5.0, 0, 0]])      # one frame apart; two apart
     (kept,) = temporal_filter(guide, [out], radius=2, sigma=0.05, light=0.3, distances=turned)
     np.testing.assert_allclose(kept, out, atol=1e-6)
-    (mixed,) = temporal_filter(guide, [out], radius=2, sigma=0.05, light=0.3, distances=np.zeros((3, 3)))
+    (mixed,) = temporal_filter(guide, [out], radius=2, sigma=0.05, light=0.3, distances=np.zeros((2, 3)))
     np.testing.assert_allclose(mixed, np.full_like(out, 0.5), atol=1e-6)
     for radius, clip in ((0, out), (2, out[:1])):                                # off, or a single image
         np.testing.assert_array_equal(temporal_filter(guide[:len(clip)], [clip], radius, 0.05, 0.3)[0], clip)
@@ -56,9 +69,9 @@ def test_light_distances_are_zero_for_the_same_light_and_grow_as_it_turns():
     probe = torch.full((32, 64, 3), 0.2)
     probe[8:10, 10:12] = 200.0                                                   # a small sun
     panoramas = torch.stack([lighting.probe_in_camera(probe, 32, 64, rotation=r) for r in (0, 0, 10, 90)])
-    d = light_distances(light_descriptor(panoramas))
-    assert d.shape == (4, 4) and np.allclose(np.diag(d), 0) and np.allclose(d, d.T)
-    assert d[0, 1] < 1e-9 and 0 < d[0, 2] < d[0, 3]
+    d = light_distances(light_descriptor(panoramas), 3)           # row k − 1: frame t to frame t + k
+    assert d.shape == (3, 4) and np.all(d[0, 3:] == 0) and np.all(d[2, 1:] == 0)
+    assert d[0, 0] < 1e-9 and 0 < d[1, 0] < d[2, 0] and d[1, 0] == pytest.approx(d[0, 1])
 
 
 def _relighter(settings):
@@ -90,8 +103,8 @@ def test_the_pipeline_filters_a_videos_results_with_its_lights_distances(turning
     raw = np.concatenate(chunks)
     rotations = lighting.frame_rotations(5, request.rotation, request.rotate_light, request.sweep)
     descriptors = relighter._light_descriptors(request, relighter._prepared_probe(request), rotations)
-    distances = light_distances(descriptors)
-    assert (distances[0, 1] > 0.05) == turning                                   # a sweep turns the light
+    distances = light_distances(descriptors, 2)
+    assert (distances[0, 0] > 0.05) == turning                                   # a sweep turns the light
     expected = temporal_filter(frames, [raw], 2, 0.05, 0.3, distances=distances)[0]
     np.testing.assert_allclose(result.relit, expected, atol=1e-5)
     assert not np.allclose(result.relit, raw, atol=1e-3)                         # it did filter
