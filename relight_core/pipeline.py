@@ -117,7 +117,8 @@ class Relighter(CostModel):
         albedo_out = np.zeros_like(frames)
         previous: tuple[int, np.ndarray, np.ndarray] | None = None  # (start, relit, albedo)
         steady = self.spec.temporal_filter[0] > 0 and num_frames > 1 and not request.per_frame  # temporal.py
-        lights: dict[int, np.ndarray] = {}   # frame → its target light's descriptor, for that filter
+        lit = steady and probe is not None and request.mode in ("relight", "render")   # the filter weighs the light
+        lights: dict[int, np.ndarray] = {}   # frame → its target light's descriptor (temporal.light_descriptor)
         evals_done, total_evals = 0, len(chunks) * evals_per_chunk
         network_seconds: list[float] = []  # sampler time between previews: the network's share of the run
         eval_started = time.perf_counter()
@@ -138,7 +139,7 @@ class Relighter(CostModel):
             if probe is not None and probe.dim() == 4:  # camera-frame panoramas: this chunk's, padded
                 chunk_probe = probe[start:start + length]
                 chunk_probe = torch.cat([chunk_probe, chunk_probe[-1:].expand(padded.shape[0] - length, -1, -1, -1)])
-            if steady and probe is not None and request.mode in ("relight", "render"):
+            if lit:
                 for offset, descriptor in enumerate(self._light_descriptors(request, chunk_probe, rot[:length])):
                     lights[start + offset] = descriptor
             condition, mask, lighting_latents = self._members(
@@ -192,7 +193,7 @@ class Relighter(CostModel):
 
         if steady:  # the results' frame-to-frame mistakes averaged where the input and its light hold still
             distances = temporal.light_distances(np.stack([lights[i] for i in range(num_frames)]),
-                                                 self.spec.temporal_filter[0]) if len(lights) == num_frames else None
+                                                 self.spec.temporal_filter[0]) if lit else None
             relit_out, albedo_out = temporal.temporal_filter(frames, [relit_out, albedo_out], *self.spec.temporal_filter,
                                                              distances=distances)
         seconds = time.perf_counter() - started

@@ -12,6 +12,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).parent))
 from probe import score  # noqa: E402
 from relight_core.evaluation.harness import load_items  # noqa: E402
+from relight_core.temporal import temporal_filter  # noqa: E402
 
 C = Path.home() / ".cache/unirelight-studio"
 items = load_items(C / "clips", "test")
@@ -29,17 +30,11 @@ def level_smooth(o, x, radius=1, relative=True):
 
 
 def bilateral(o, x, radius=1, sigma=0.05, ratio=True):
-    T = len(o)
+    """The library's filter (relight_core/temporal.py, the light not weighed) on the outputs, or on their log
+    ratio to the input."""
     lr = np.log(o + EPS) - np.log(x + EPS) if ratio else o
-    out = np.empty_like(o)
-    for t in range(T):
-        num = np.zeros_like(o[t]); den = np.zeros(o.shape[1:3] + (1,), np.float32)
-        for s in range(max(0, t - radius), min(T, t + radius + 1)):
-            w = np.exp(-((x[t] - x[s]) ** 2).sum(-1, keepdims=True) / (2 * sigma ** 2))
-            num += w * lr[s]; den += w
-        v = num / den
-        out[t] = np.exp(v) * (x[t] + EPS) - EPS if ratio else v
-    return np.clip(out, 0, 1)
+    v = temporal_filter(x, [lr], radius, sigma, 1.0)[0]
+    return np.clip(np.exp(v) * (x + EPS) - EPS if ratio else v, 0, 1)
 
 
 variants = {
