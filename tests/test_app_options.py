@@ -95,3 +95,26 @@ def test_the_ensemble_slider_starts_at_the_models_and_counts_in_the_estimate(tmp
     assert asked == [None, 1, 16]
     assert estimate(1, 64, 64, 4, 16) > estimate(1, 64, 64, 4, 1)   # exact scaling: test_ensemble.py
     assert "from 1 to 16" in studio.estimate(image, "Relight", 0, 0, 64, 4, 1, "tiny", 0)
+
+
+def test_the_studio_relights_a_wide_photo_on_the_default_models_own_grid(tmp_path):
+    # The default model's frames need multiples of 8 px, not 16: a 16:9 upload works at 128×72 (its own shape)
+    # and comes back at the input's resolution. The studio once rounded to 16 (128×64, squashed).
+    from types import SimpleNamespace
+
+    import numpy as np
+    from PIL import Image
+
+    from relight_core import media
+    from relight_core.media.image import resize
+
+    image = tmp_path / "wide.png"
+    media.save_image(image, resize(media.load_media(ROOT / "examples" / "inputs" / "objects.png").frames, 180, 320)[0])
+    studio = Studio(StudioConfig(model="default", envmaps_dir=ROOT / "envmaps", work_dir=tmp_path / "work"))
+    assert "at 128×72" in studio.estimate(str(image), "Relight", 0, 0, 128, 1, 1, "default")
+    shapes = []  # read while streaming: the job's folder goes when the run ends (Gradio has copied it by then)
+    for update in studio.run(str(image), "Relight", "sunset", None, 0.0, 0.0, False, 0, 360, 1, 0, 0, 128, 1,
+                             "res2ab", 0, 0.0, "default", 6500.0, 0.0, 0.0, request=SimpleNamespace(session_hash="w")):
+        if "Done" in str(update[0]):
+            shapes.append(np.asarray(Image.open(update[2])).shape)
+    assert shapes == [(180, 320, 3)]

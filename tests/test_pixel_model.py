@@ -40,8 +40,17 @@ def test_pixel_tokenizer_is_lossless_and_spatially_local():
 def test_pixel_tokenizer_spec_errors_are_one_sentence():
     with pytest.raises(InputError, match="Unknown pixel tokenizer keys"):
         build_tokenizer({"type": "pixel", "channels": 3})
-    with pytest.raises(InputError, match="cannot be tokenized"):
+    with pytest.raises(InputError, match="cannot be tokenized: .* multiples of 8"):
         PixelTokenizer(8).encode(torch.zeros(1, 3, 1, 20, 32))
+
+
+def test_pixel_tokenizer_takes_whole_patches_not_multiples_of_16():
+    # A 16:9 frame at the default's 128 px is 128×72: nine 8-px patches high. The learned tokenizers' 16-px rule
+    # (8× × a DiT patch of 2) once refused it here, so every 16:9 or 3:2 input failed with the default model.
+    video = torch.rand(1, 3, 2, 72, 128) * 2 - 1
+    latents = PixelTokenizer(8).encode(video)
+    assert latents.shape == (1, 192, 2, 9, 16)
+    assert torch.equal(PixelTokenizer(8).decode(latents), video)
 
 
 def test_channel_layout_generalises_the_released_72():

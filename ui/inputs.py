@@ -21,9 +21,9 @@ def frame_count(path, frame_start, frame_end) -> int:
     return max(1, int(frame_end) - int(frame_start) + 1)
 
 
-def load_frames(path, frame_start, frame_end, size: int | None) -> media.Media:
+def load_frames(path, frame_start, frame_end, size: int | None, multiple: int = media.SIZE_MULTIPLE) -> media.Media:
     """The frames to relight, at the working resolution `size` (None: the file's own; videos: the
-    chosen range only)."""
+    chosen range only), each side a multiple of `multiple` (the model's `Relighter.frame_multiple`)."""
     start, end = int(frame_start or 0), int(frame_end or 0)
     if is_video(path):
         if end < start:
@@ -33,7 +33,7 @@ def load_frames(path, frame_start, frame_end, size: int | None) -> media.Media:
         if end >= count:
             raise InputError(f"The last frame ({end}) is past the end of {Path(path).name}, which has "
                              f"{count} frames (0 to {count - 1}); set the frame range again.")
-    return media.load_media(path, start=start, end=end + 1, size=int(size) if size else None)
+    return media.load_media(path, start=start, end=end + 1, size=int(size) if size else None, multiple=multiple)
 
 
 def full_frames(path, frame_start, frame_end) -> np.ndarray | None:

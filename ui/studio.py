@@ -145,9 +145,9 @@ class Studio:
         except InputError as exc:
             return f"No time estimate: {exc}"
         try:
-            frames = load_frames(path, frame_start, frame_start, size).frames  # one frame: the size
-            count = frame_count(path, frame_start, frame_end)
             relighter = self.relighter(model)
+            frames = load_frames(path, frame_start, frame_start, size, relighter.frame_multiple).frames  # the size
+            count = frame_count(path, frame_start, frame_end)
         except (InputError, OSError, gr.Error):
             return "No time estimate: the file above cannot be used."
         height, width = frames.shape[1:3]
@@ -278,7 +278,7 @@ class Studio:
         started = time.monotonic()
         view = MODE_VIEWS[next(label for label, name in MODES.items() if name == mode)]
         relighter = self.relighter(model)
-        loaded = load_frames(path, frame_start, frame_end, size)
+        loaded = load_frames(path, frame_start, frame_end, size, relighter.frame_multiple)
         frames = loaded.frames
         full = full_frames(path, frame_start, frame_end) if self.config.full_resolution else None
         shown = frames if full is None else full

@@ -55,13 +55,16 @@ def media_kind(path) -> str:
 
 
 def load_media(
-    path, *, max_frames: int | None = None, start: int = 0, end: int | None = None, size: int | None = None
+    path, *, max_frames: int | None = None, start: int = 0, end: int | None = None, size: int | None = None,
+    multiple: int = SIZE_MULTIPLE,
 ) -> Media:
-    """Image or video, detected by content -> Media (images: T = 1, fps None; start/end ignored)."""
+    """Image or video, detected by content -> Media (images: T = 1, fps None; start/end ignored); with `size`,
+    the long side scaled to it and each side rounded to a multiple of `multiple` (a model's
+    `Relighter.frame_multiple`)."""
     path = check_path(path)
     if kind(path) == "video":
-        return load_video(path, start=start, end=end, max_frames=max_frames, size=size)
+        return load_video(path, start=start, end=end, max_frames=max_frames, size=size, multiple=multiple)
     frames = load_image(path)
     if size is not None:
-        frames = resize_frames(frames, size)
+        frames = resize_frames(frames, size, multiple)
     return Media(frames=frames, fps=None, is_video=False)

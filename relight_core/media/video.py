@@ -13,7 +13,7 @@ import numpy as np
 
 from relight_core.errors import InputError
 from relight_core.media.base import Media, atomic, check_path, check_side, name
-from relight_core.media.image import resize, target_size, to_uint8
+from relight_core.media.image import SIZE_MULTIPLE, resize, target_size, to_uint8
 
 MAX_DECODED_PIXELS = 2**28  # T·H·W after decoding (≈ 3.2 GB as float32 RGB)
 AAC_SAMPLE_RATES = (8000, 11025, 12000, 16000, 22050, 24000, 32000, 44100, 48000, 64000, 88200, 96000)
@@ -97,8 +97,10 @@ def _decoded(container, path: str) -> Iterator[av.VideoFrame]:
                          "re-export or re-download it.") from error
 
 
-def load_video(path, start: int = 0, end: int | None = None, max_frames: int | None = None, size: int | None = None) -> Media:
-    """Decode frames [start, end) (at most max_frames; long side to `size` when given) -> Media."""
+def load_video(path, start: int = 0, end: int | None = None, max_frames: int | None = None, size: int | None = None,
+               multiple: int = SIZE_MULTIPLE) -> Media:
+    """Decode frames [start, end) (at most max_frames; long side to `size` when given, each side a multiple of
+    `multiple`) -> Media."""
     path = check_path(path)
     if start < 0 or (end is not None and end <= start) or (max_frames is not None and max_frames < 1):
         raise InputError(
@@ -107,7 +109,7 @@ def load_video(path, start: int = 0, end: int | None = None, max_frames: int | N
         )
     info = probe_video(path)
     check_side(path, info.width, info.height)
-    H, W = (info.height, info.width) if size is None else target_size(info.height, info.width, size)
+    H, W = (info.height, info.width) if size is None else target_size(info.height, info.width, size, multiple)
     expected = min(end or info.num_frames, info.num_frames) - start
     _check_budget(path, min(expected, max_frames or expected), H, W)
     limit = min(end - start if end is not None else np.inf, max_frames or np.inf)

@@ -57,21 +57,22 @@ def check_frames(num_frames: int, temporal_factor: int) -> None:
         )
 
 
-def check_size(height: int, width: int) -> None:
-    """Raise InputError unless H and W are positive multiples of 16 (8× tokenizer × 2 patch)."""
-    if height <= 0 or width <= 0 or height % SIZE_MULTIPLE or width % SIZE_MULTIPLE:
+def check_size(height: int, width: int, multiple: int = SIZE_MULTIPLE) -> None:
+    """Raise InputError unless H and W are positive multiples of `multiple` (16 = 8× tokenizer × 2 patch for
+    the learned tokenizers; the pixel tokenizer needs only its patch)."""
+    if height <= 0 or width <= 0 or height % multiple or width % multiple:
         raise InputError(
             f"A frame size of {width}×{height} cannot be tokenized: resize so that width and "
-            f"height are multiples of {SIZE_MULTIPLE}."
+            f"height are multiples of {multiple}."
         )
 
 
-def check_video(video: Tensor, temporal_factor: int) -> None:
-    """Raise InputError unless video is [B,3,T,H,W] with a valid T, H and W."""
+def check_video(video: Tensor, temporal_factor: int, multiple: int = SIZE_MULTIPLE) -> None:
+    """Raise InputError unless video is [B,3,T,H,W] with a valid T, and H and W multiples of `multiple`."""
     if video.ndim != 5 or video.shape[1] != 3:
         raise InputError(
             f"Expected a video tensor of shape [B,3,T,H,W], got {list(video.shape)}: "
             "add the batch and time axes."
         )
     check_frames(video.shape[2], temporal_factor)
-    check_size(video.shape[3], video.shape[4])
+    check_size(video.shape[3], video.shape[4], multiple)

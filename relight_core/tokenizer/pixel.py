@@ -35,7 +35,8 @@ class PixelTokenizer(nn.Module):
         self.scale = scale
 
     def encode(self, video: torch.Tensor) -> torch.Tensor:
-        check_video(video, self.temporal_factor)
+        check_video(video, self.temporal_factor, self.spatial_factor)  # whole patches; the DiT's own patch is
+        # the pipeline's to check (`Relighter.frame_multiple`: 8 px for the default model, so 128×72 for 16:9)
         b, c, t, h, w = video.shape
         p = self.spatial_factor
         x = video.reshape(b, c, t, h // p, p, w // p, p)
