@@ -43,14 +43,14 @@ def save_still(stem: Path, frame: np.ndarray) -> Path:
     return path
 
 
-def save_clip(stem: Path, frames: np.ndarray, video: bool, fps: float | None = None,
-              audio_path: str | None = None, audio_start: float = 0.0) -> Path:
+def save_clip(stem: Path, frames, video: bool, fps: float | None = None,
+              audio_path: str | None = None, audio_start: float = 0.0, num_frames: int | None = None) -> Path:
     """`<stem>.mp4` for a video (with `audio_path`'s sound from `audio_start` on), else `<stem>.png`
-    (the first frame)."""
+    (the first frame). A video's `frames` may be blocks of frames, `num_frames` in all (`media.save_video`)."""
     if not video:
         return save_still(stem, frames[0])
     path = Path(f"{stem}.mp4")
-    media.save_video(path, frames, fps, audio_from=audio_path, audio_start=audio_start)
+    media.save_video(path, frames, fps, audio_from=audio_path, audio_start=audio_start, num_frames=num_frames)
     return path
 
 

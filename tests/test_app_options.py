@@ -118,3 +118,24 @@ def test_the_studio_relights_a_wide_photo_on_the_default_models_own_grid(tmp_pat
         if "Done" in str(update[0]):
             shapes.append(np.asarray(Image.open(update[2])).shape)
     assert shapes == [(180, 320, 3)]
+
+
+def test_the_studio_says_when_a_video_is_too_long_for_full_resolution_results(tmp_path, monkeypatch):
+    # The studio holds a video's frames at their own size to bring results back to it; one too long for that
+    # (MAX_DECODED_PIXELS, cut here to 4 of 12 frames) is relit at the working size, and the last status says so.
+    from types import SimpleNamespace
+
+    from relight_core.media import video
+    from tests.factory import make_mp4
+
+    clip = make_mp4(tmp_path / "clip.mp4", frames=12, width=48, height=32)
+    studio = Studio(StudioConfig(model="tiny", envmaps_dir=ROOT / "envmaps", work_dir=tmp_path / "work"))
+
+    def last_status():
+        updates = list(studio.run(str(clip), "Relight", "sunset", None, 0.0, 0.0, False, 0, 360, 1, 0, 11, 32, 1,
+                                  "euler", 0, 0.0, "tiny", 6500.0, 0.0, 0.0, request=SimpleNamespace(session_hash="v")))
+        return updates[-1][0]
+
+    assert "Done" in last_status() and "Results at" not in last_status()
+    monkeypatch.setattr(video, "MAX_DECODED_PIXELS", 4 * 48 * 32)
+    assert "Results at 32×16: too long a video for its full size here." in last_status()

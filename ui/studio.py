@@ -338,9 +338,12 @@ class Studio:
             if result is None:  # stopped
                 yield RunOutputs(status=status_html(0.0, "Stopped.", "stopped")).values()
                 return
+            smaller = ""
+            if full is None and self.config.full_resolution and is_video:  # too many frames to hold at full size
+                smaller = f" Results at {frames.shape[2]}×{frames.shape[1]}: too long a video for its full size here."
             yield RunOutputs(status=status_html(
                 (run_index + 1) / len(seeds), "Writing the results" +
-                (" at the input's full resolution…" if full is not None else "…"))).values()
+                (" at the input's full resolution…" if full is not None else "…") + smaller)).values()
             # The mode's clips, at the input's full resolution when it fits (guided ratio upsampling).
             files = {k: str(v) for k, v in outputs.write_outputs(
                 outputs.result_clips(result, mode, frames, full), job, is_video, result.fps, *audio,
@@ -351,7 +354,7 @@ class Studio:
                 gallery.append((files["relit_still"], f"seed {run_seed}"))
             yield RunOutputs(
                 status=status_html((run_index + 1) / len(seeds),
-                                   f"Done in {_duration(time.monotonic() - started)}." if run_index + 1 == len(seeds)
+                                   f"Done in {_duration(time.monotonic() - started)}.{smaller}" if run_index + 1 == len(seeds)
                                    else f"Seed {run_seed} done.", "done" if run_index + 1 == len(seeds)
                                    else "running"),
                 relit_image=files.get("relit_still"),

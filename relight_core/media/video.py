@@ -102,11 +102,7 @@ def load_video(path, start: int = 0, end: int | None = None, max_frames: int | N
     """Decode frames [start, end) (at most max_frames; long side to `size` when given, each side a multiple of
     `multiple`) -> Media."""
     path = check_path(path)
-    if start < 0 or (end is not None and end <= start) or (max_frames is not None and max_frames < 1):
-        raise InputError(
-            f"The frame range start={start}, end={end}, max_frames={max_frames} is empty; "
-            "use 0 ≤ start < end and max_frames ≥ 1."
-        )
+    check_range(start, end, max_frames)
     info = probe_video(path)
     check_side(path, info.width, info.height)
     H, W = (info.height, info.width) if size is None else target_size(info.height, info.width, size, multiple)
@@ -148,6 +144,39 @@ def load_video(path, start: int = 0, end: int | None = None, max_frames: int | N
     )
 
 
+def check_range(start: int = 0, end: int | None = None, max_frames: int | None = None) -> None:
+    """InputError unless frames [start, end), at most max_frames, can hold a frame."""
+    if start < 0 or (end is not None and end <= start) or (max_frames is not None and max_frames < 1):
+        raise InputError(
+            f"The frame range start={start}, end={end}, max_frames={max_frames} is empty; "
+            "use 0 ≤ start < end and max_frames ≥ 1."
+        )
+
+
+def iter_video(path, start: int = 0, end: int | None = None, block: int = 16) -> Iterator[np.ndarray]:
+    """Frames [start, end) at the video's own (displayed) resolution, `block` at a time: [n, H, W, 3] float32
+    in [0, 1], decoded as `load_video` decodes them — for a long video's full-resolution results, written
+    without holding all of its frames."""
+    path = check_path(path)
+    if block < 1:
+        raise ValueError(f"block must be ≥ 1, not {block}")
+    pending = []
+    with _open_video(path) as container:
+        container.streams.video[0].thread_type = "AUTO"
+        for index, frame in enumerate(_decoded(container, path)):
+            if index < start:
+                continue
+            if end is not None and index >= end:
+                break
+            rgb = np.rot90(frame.to_ndarray(format="rgb24"), round((frame.rotation or 0) / 90))
+            pending.append(rgb.astype(np.float32) / 255.0)
+            if len(pending) == block:
+                yield np.stack(pending)
+                pending = []
+    if pending:
+        yield np.stack(pending)
+
+
 def _copy_audio(output, source: str, start: float, duration: float) -> None:
     """Transcode `source`'s first audio stream, from `start` for `duration` seconds, into AAC."""
     with av.open(source) as container:
@@ -181,33 +210,49 @@ def _copy_audio(output, source: str, start: float, duration: float) -> None:
             output.mux(packet)
 
 
-def save_video(path, frames: np.ndarray, fps: float, audio_from=None, audio_start: float = 0.0) -> None:
+def save_video(path, frames, fps: float, audio_from=None, audio_start: float = 0.0,
+               num_frames: int | None = None) -> None:
     """Write frames [T, H, W, 3] in [0, 1] as H.264 (yuv420p) mp4; audio from `audio_from` as AAC.
 
+    `frames` may also be an iterable of such blocks, all of one size, with `num_frames` their total T: a long
+    video written a block at a time (nothing is renamed into place unless exactly that many came).
     Odd sizes are padded by repeating the last row/column, since yuv420p needs even sides.
     """
-    frames = to_uint8(frames)
-    T, h, w, _ = frames.shape
-    if T == 0 or not fps or fps <= 0:
+    whole = isinstance(frames, np.ndarray)
+    T = frames.shape[0] if whole else num_frames
+    if not T or T < 0 or not fps or fps <= 0:
         raise InputError(f"Cannot write a video with {T} frames at {fps} fps; give at least one frame and fps > 0.")
-    frames = np.pad(frames, ((0, 0), (0, h % 2), (0, w % 2), (0, 0)), mode="edge")
+    blocks = iter([frames] if whole else frames)
     rate = Fraction(fps).limit_denominator(1001)
     with atomic(path) as tmp:
         with av.open(tmp, "w", format="mp4", options={"movflags": "+faststart"}) as output:
-            stream = output.add_stream("libx264", rate=rate, options={"crf": "18"})
-            stream.width, stream.height, stream.pix_fmt = frames.shape[2], frames.shape[1], "yuv420p"
-            if audio_from is not None:
-                try:
-                    _copy_audio(output, os.fspath(audio_from), audio_start, T / float(rate))
-                except av.FFmpegError as error:
-                    raise InputError(
-                        f"The audio of {name(os.fspath(audio_from))} could not be copied ({_reason(error)}); "
-                        "save without audio."
-                    ) from error
-            for index, rgb in enumerate(frames):
-                frame = av.VideoFrame.from_ndarray(rgb, format="rgb24")
-                frame.pts = index
-                for packet in stream.encode(frame):
-                    output.mux(packet)
+            stream, index = None, 0
+            for block in blocks:
+                block = to_uint8(block)
+                h, w = block.shape[1:3]
+                block = np.pad(block, ((0, 0), (0, h % 2), (0, w % 2), (0, 0)), mode="edge")
+                if stream is None:  # the first block gives the size; the audio goes in before any picture
+                    stream = output.add_stream("libx264", rate=rate, options={"crf": "18"})
+                    stream.width, stream.height, stream.pix_fmt = block.shape[2], block.shape[1], "yuv420p"
+                    if audio_from is not None:
+                        try:
+                            _copy_audio(output, os.fspath(audio_from), audio_start, T / float(rate))
+                        except av.FFmpegError as error:
+                            raise InputError(
+                                f"The audio of {name(os.fspath(audio_from))} could not be copied ({_reason(error)}); "
+                                "save without audio."
+                            ) from error
+                elif block.shape[1:3] != (stream.height, stream.width):
+                    raise InputError(f"A video's frames must all have one size: {stream.width}×{stream.height}, "
+                                     f"then {block.shape[2]}×{block.shape[1]}.")
+                for rgb in block:
+                    frame = av.VideoFrame.from_ndarray(rgb, format="rgb24")
+                    frame.pts = index
+                    index += 1
+                    for packet in stream.encode(frame):
+                        output.mux(packet)
+            if index != T:
+                raise InputError(f"{name(os.fspath(path))} got {index} frames where {T} were due; the source "
+                                 "video may have changed while it was being relit: run it again.")
             for packet in stream.encode(None):
                 output.mux(packet)
