@@ -7,18 +7,16 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Iterable, Iterator
+from typing import Callable, Iterable
 
 import numpy as np
 import torch
 
 from relight_core import lighting, media
-from relight_core.outputs import MODE_OUTPUTS, result_clips, save_clip, write_outputs
+from relight_core.outputs import FullVideo, result_clips, write_outputs
 from relight_core.pipeline import Event, Finished, Relighter, RelightRequest, RelightResult
-from relight_core.upsample import guided_ratio_upsample
 
 PROBE_MODES = ("relight", "render")  # the modes that read a probe; the others ignore one
-STREAM_BLOCK = 16  # frames of a long video brought to full resolution and written at a time
 
 
 @dataclass(frozen=True)
@@ -153,30 +151,11 @@ def write_job(job: MediaJob, relighter: Relighter, inputs: JobInputs, plan: JobP
     source = plan.source or inputs.source
     for prefix, request in plan.requests:
         result = follow(prefix, relighter.run(request))
-        if inputs.source is None and not job.raw:
-            written += save_streamed(job, source, plan.frames, result, folder, prefix)
+        if inputs.source is None and not job.raw:  # a video: at its own size, a block at a time
+            clips = result_clips(result, job.mode, plan.frames)
+            written += list(write_outputs(clips, folder, True, source.fps, source.audio_path, source.audio_start,
+                                          prefix, full=FullVideo(job.input, *job.frames),
+                                          working=plan.frames).values())
         else:
             written += save_outputs(output_frames(job, source, plan.frames, result), source, folder, prefix)
     return written
-
-
-def save_streamed(job: MediaJob, source: media.Media, frames: np.ndarray, result: RelightResult, folder: Path,
-                  prefix: str = "") -> list[Path]:
-    """A video's clips at its own resolution (`full_resolution_blocks`), written a block at a time."""
-    return [save_clip(Path(folder) / f"{prefix}{name}", full_resolution_blocks(job, frames, getattr(result, name)),
-                      True, source.fps, source.audio_path, source.audio_start, num_frames=len(frames))
-            for name in MODE_OUTPUTS[job.mode]]
-
-
-def full_resolution_blocks(job: MediaJob, frames: np.ndarray, clip: np.ndarray) -> Iterator[np.ndarray]:
-    """`clip` (a result for the working-size `frames`) at the video's own resolution, `STREAM_BLOCK` frames at a
-    time: the input decoded again block by block and each block's results brought to it by guided ratio
-    upsampling — the frames `output_frames` makes, without holding the video (memory: a block)."""
-    start, end = job.frames
-    at = 0
-    for full in media.iter_video(job.input, start, end, STREAM_BLOCK):
-        n = min(full.shape[0], len(clip) - at)
-        if n <= 0:
-            break
-        yield guided_ratio_upsample(full[:n], frames[at:at + n], clip[at:at + n])
-        at += n

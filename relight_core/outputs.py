@@ -9,12 +9,47 @@ go beside it as a still, and an image's result as linear-light EXR. Every write 
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from relight_core import media
 from relight_core.upsample import guided_ratio_upsample
+
+STREAM_BLOCK = 16  # frames of a video brought to full resolution and written at a time
+
+
+@dataclass(frozen=True)
+class FullVideo:
+    """A video's frames [start, end) at its own size, read back from its file a block at a time when its
+    results are written (`write_outputs`), so they need never be held together."""
+
+    path: str
+    start: int = 0
+    end: int | None = None
+
+    def blocks(self) -> Iterator[np.ndarray]:
+        return media.iter_video(self.path, self.start, self.end, STREAM_BLOCK)
+
+    def frame(self, index: int) -> np.ndarray:
+        """Frame `index` of the range, [H,W,3]."""
+        return next(media.iter_video(self.path, self.start + index, self.start + index + 1, 1))[0]
+
+
+def full_resolution_blocks(full: FullVideo, working: np.ndarray, clip: np.ndarray) -> Iterator[np.ndarray]:
+    """`clip` (a result for the working-size frames `working`) at the video's own size, `STREAM_BLOCK` frames at
+    a time: each block of `full` decoded, its results brought onto it by guided ratio upsampling — exactly the
+    frames of `result_clips(..., full frames)`, in a block's memory."""
+    at = 0
+    for block in full.blocks():
+        n = min(block.shape[0], len(clip) - at)
+        if n <= 0:
+            break
+        yield guided_ratio_upsample(block[:n], working[at:at + n], clip[at:at + n])
+        at += n
+
 
 # The clips each mode writes, in order. `render` takes the albedo as its input, so it writes only
 # the rendering; random illuminations write each seed's relit result and the albedo found with it.
@@ -56,19 +91,31 @@ def save_clip(stem: Path, frames, video: bool, fps: float | None = None,
 
 def write_outputs(clips: dict[str, np.ndarray], folder: Path, video: bool, fps: float | None = None,
                   audio_path: str | None = None, audio_start: float = 0.0, prefix: str = "", suffix: str = "",
-                  stills: bool = False, linear: tuple[str, ...] = ()) -> dict[str, Path]:
+                  stills: bool = False, linear: tuple[str, ...] = (), full: FullVideo | None = None,
+                  working: np.ndarray | None = None) -> dict[str, Path]:
     """Write each clip as `<prefix><name><suffix>` (`save_clip`) into `folder`; returns the files by key:
 
     * `name`: the clip (`.mp4` for a video, `.png` for an image);
     * `name_still` (with `stills`): its middle frame as PNG (for an image, the clip's own file);
     * `name_linear` (for the names in `linear`, images only): `<...>-linear.exr`, in linear light.
+
+    With `full` (a video; `clips` made for the working-size frames `working`), each clip is written at the
+    video's own size a block at a time (`full_resolution_blocks`), its still the middle frame brought there.
     """
     files: dict[str, Path] = {}
     for name, frames in clips.items():
         stem = Path(folder) / f"{prefix}{name}{suffix}"
+        middle = frames.shape[0] // 2
+        if full is not None and video:
+            files[name] = save_clip(stem, full_resolution_blocks(full, working, frames), True, fps, audio_path,
+                                    audio_start, num_frames=len(frames))
+            if stills:
+                files[f"{name}_still"] = save_still(stem, guided_ratio_upsample(
+                    full.frame(middle), working[middle], frames[middle]))
+            continue
         files[name] = save_clip(stem, frames, video, fps, audio_path, audio_start)
         if stills:
-            files[f"{name}_still"] = save_still(stem, frames[frames.shape[0] // 2]) if video else files[name]
+            files[f"{name}_still"] = save_still(stem, frames[middle]) if video else files[name]
         if name in linear and not video:
             files[f"{name}_linear"] = Path(f"{stem}-linear.exr")
             media.save_exr(files[f"{name}_linear"], media.srgb_to_linear(frames[0]))

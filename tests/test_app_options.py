@@ -120,22 +120,29 @@ def test_the_studio_relights_a_wide_photo_on_the_default_models_own_grid(tmp_pat
     assert shapes == [(180, 320, 3)]
 
 
-def test_the_studio_says_when_a_video_is_too_long_for_full_resolution_results(tmp_path, monkeypatch):
-    # The studio holds a video's frames at their own size to bring results back to it; one too long for that
-    # (MAX_DECODED_PIXELS, cut here to 4 of 12 frames) is relit at the working size, and the last status says so.
+def test_the_studio_brings_a_video_too_long_to_hold_back_at_its_own_size(tmp_path, monkeypatch):
+    # A video's results come back at the file's own size from the file, a block of frames at a time: with the
+    # decode budget cut to 4 of the clip's 12 frames at that size, the input, the relit clip and their stills are
+    # still 48×32, all 12 frames (the blocks' frames equal the whole clip's: test_cli.py).
     from types import SimpleNamespace
 
-    from relight_core.media import video
-    from tests.factory import make_mp4
+    import numpy as np
+
+    from relight_core import media
+    from relight_core.media import iter_video, video
+    from tests.factory import make_mp4, plain
 
     clip = make_mp4(tmp_path / "clip.mp4", frames=12, width=48, height=32)
     studio = Studio(StudioConfig(model="tiny", envmaps_dir=ROOT / "envmaps", work_dir=tmp_path / "work"))
-
-    def last_status():
-        updates = list(studio.run(str(clip), "Relight", "sunset", None, 0.0, 0.0, False, 0, 360, 1, 0, 11, 32, 1,
-                                  "euler", 0, 0.0, "tiny", 6500.0, 0.0, 0.0, request=SimpleNamespace(session_hash="v")))
-        return updates[-1][0]
-
-    assert "Done" in last_status() and "Results at" not in last_status()
     monkeypatch.setattr(video, "MAX_DECODED_PIXELS", 4 * 48 * 32)
-    assert "Results at 32×16: too long a video for its full size here." in last_status()
+    latest, seen = {}, {}
+    for update in studio.run(str(clip), "Relight", "sunset", None, 0.0, 0.0, False, 0, 360, 1, 0, 11, 32, 1,
+                             "euler", 0, 0.0, "tiny", 6500.0, 0.0, 0.0, request=SimpleNamespace(session_hash="v")):
+        # status, input still, relit still, albedo still, input video, relit video, albedo video, ...
+        latest.update({k: v for k, v in enumerate(plain(value) for value in update) if isinstance(v, str)})
+        if "Done" in latest[0]:  # read while streaming: the job's folder goes when the run ends
+            seen = {"input": np.concatenate(list(iter_video(latest[4]))),
+                    "relit": np.concatenate(list(iter_video(latest[5]))),
+                    "stills": [media.load_media(latest[k]).frames.shape for k in (1, 2, 3)]}
+    assert seen["input"].shape == seen["relit"].shape == (12, 32, 48, 3)
+    assert seen["stills"] == [(1, 32, 48, 3)] * 3

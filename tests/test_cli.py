@@ -179,9 +179,9 @@ def test_a_video_is_relit_at_the_working_size_and_written_at_its_own_a_block_at_
     # frames at full size (a long 720p video) the job still runs, its sound kept.
     from relight_core import media
     from relight_core.errors import InputError
-    from relight_core.jobs import MediaJob, finished_result, full_resolution_blocks, load_inputs, plan_job
+    from relight_core.jobs import MediaJob, finished_result, load_inputs, plan_job
     from relight_core.media import iter_video, load_video, video
-    from relight_core.outputs import result_clips
+    from relight_core.outputs import FullVideo, full_resolution_blocks, result_clips
     from relight_core.pipeline import Relighter
 
     clip = make_mp4(tmp_path / "clip.mp4", frames=40, width=96, height=64, fps=12, audio=True)
@@ -196,7 +196,7 @@ def test_a_video_is_relit_at_the_working_size_and_written_at_its_own_a_block_at_
     result = finished_result("clip", relighter.run(plan.requests[0][1]))
     whole = result_clips(result, "relight", plan.frames, full)
     for name in ("relit", "albedo"):
-        blocks = list(full_resolution_blocks(job, plan.frames, getattr(result, name)))
+        blocks = list(full_resolution_blocks(FullVideo(str(clip)), plan.frames, getattr(result, name)))
         assert [len(b) for b in blocks] == [16, 16, 8]
         assert np.array_equal(np.concatenate(blocks), whole[name]), name
     with monkeypatch.context() as patch:

@@ -280,7 +280,12 @@ class Studio:
         relighter = self.relighter(model)
         loaded = load_frames(path, frame_start, frame_end, size, relighter.frame_multiple)
         frames = loaded.frames
-        full = full_frames(path, frame_start, frame_end) if self.config.full_resolution else None
+        is_video = loaded.is_video
+        # An image's results come back at its own size from its frames; a video's from its file, a block of
+        # frames at a time (`outputs.FullVideo`), so that a long one is never held at its own size.
+        full = full_frames(path, frame_start, frame_end) if self.config.full_resolution and not is_video else None
+        whole = outputs.FullVideo(str(path), int(frame_start), int(frame_end) + 1) \
+            if self.config.full_resolution and is_video else None
         shown = frames if full is None else full
         probe = None
         if mode in ("relight", "render"):
@@ -291,13 +296,15 @@ class Studio:
             probe = self.probes.load(probe_file)
         seeds = [seed + i for i in range(max(1, min(num_seeds, self.config.max_seeds)))] \
             if mode == "random" else [seed]
-        is_video = loaded.is_video
 
         audio = (loaded.audio_path, loaded.audio_start)
         # The still beside Relit and Albedo is the frame their stills show (a video's middle one).
         middle = frames.shape[0] // 2
-        input_still = str(outputs.save_still(job / "input", shown[middle]))
-        input_clip = str(outputs.save_clip(job / "input", shown, True, loaded.fps, *audio)) if is_video else None
+        input_still = str(outputs.save_still(job / "input", shown[middle] if whole is None else whole.frame(middle)))
+        input_clip = None
+        if is_video:
+            input_clip = str(outputs.save_clip(job / "input", shown if whole is None else whole.blocks(), True,
+                                               loaded.fps, *audio, num_frames=frames.shape[0]))
         yield RunOutputs(status=status_html(0.0, "Starting: preparing the input and the light…"), input_image=input_still, input_video=input_clip,
                          relit_image=CLEAR, albedo_image=CLEAR, relit_video=CLEAR, albedo_video=CLEAR,
                          compare=CLEAR_COMPARE, downloads=CLEAR, seeds=[] if mode == "random" else None).values()
@@ -338,23 +345,21 @@ class Studio:
             if result is None:  # stopped
                 yield RunOutputs(status=status_html(0.0, "Stopped.", "stopped")).values()
                 return
-            smaller = ""
-            if full is None and self.config.full_resolution and is_video:  # too many frames to hold at full size
-                smaller = f" Results at {frames.shape[2]}×{frames.shape[1]}: too long a video for its full size here."
             yield RunOutputs(status=status_html(
                 (run_index + 1) / len(seeds), "Writing the results" +
-                (" at the input's full resolution…" if full is not None else "…") + smaller)).values()
-            # The mode's clips, at the input's full resolution when it fits (guided ratio upsampling).
+                (" at the input's full resolution…" if full is not None or whole is not None else "…"))).values()
+            # The mode's clips, at the input's full resolution (guided ratio upsampling; a video's a block at a time).
             files = {k: str(v) for k, v in outputs.write_outputs(
                 outputs.result_clips(result, mode, frames, full), job, is_video, result.fps, *audio,
-                suffix=f"-seed{run_seed}" if mode == "random" else "", stills=True, linear=("relit",)).items()}
+                suffix=f"-seed{run_seed}" if mode == "random" else "", stills=True, linear=("relit",),
+                full=whole, working=frames).items()}
             made = outputs.MODE_OUTPUTS[mode]
             downloads += [files[name] for name in made] + [files[k] for k in ("relit_linear",) if k in files]
             if mode == "random":
                 gallery.append((files["relit_still"], f"seed {run_seed}"))
             yield RunOutputs(
                 status=status_html((run_index + 1) / len(seeds),
-                                   f"Done in {_duration(time.monotonic() - started)}.{smaller}" if run_index + 1 == len(seeds)
+                                   f"Done in {_duration(time.monotonic() - started)}." if run_index + 1 == len(seeds)
                                    else f"Seed {run_seed} done.", "done" if run_index + 1 == len(seeds)
                                    else "running"),
                 relit_image=files.get("relit_still"),
