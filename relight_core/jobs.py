@@ -59,7 +59,7 @@ class JobInputs:
 @dataclass(frozen=True)
 class JobPlan:
     """The working-size frames and the requests to run, each with its output-file prefix, and the input
-    whose timing and sound the results take (`source`; at the working size for a long video)."""
+    whose timing and sound the results take (`source`; a video's at the working size)."""
 
     frames: np.ndarray
     requests: list[tuple[str, RelightRequest]]
