@@ -220,6 +220,19 @@ def test_video_rotation_metadata(tmp_path):
     assert frame[:, 0, 2].max() < 0.1 and frame[:, -1, 2].min() > 0.9
 
 
+def test_iter_video_gives_load_videos_frames_a_block_at_a_time_rotation_and_range_included(tmp_path):
+    # What writes a video's results at full size (outputs.FullVideo) reads its frames with iter_video: they must be
+    # load_video's frames, in order, upright (a phone's portrait clip stores them turned), over the same range.
+    from relight_core.media import iter_video
+
+    write_mp4(tmp_path / "r.mp4", num_frames=9, size=(32, 64), rotation=90)
+    whole = load_media(tmp_path / "r.mp4").frames
+    blocks = list(iter_video(tmp_path / "r.mp4", block=4))
+    assert [b.shape for b in blocks] == [(4, 64, 32, 3), (4, 64, 32, 3), (1, 64, 32, 3)]
+    assert np.array_equal(np.concatenate(blocks), whole)
+    assert np.array_equal(np.concatenate(list(iter_video(tmp_path / "r.mp4", 2, 7, 16))), whole[2:7])
+
+
 @pytest.mark.parametrize("odd", [False, True])
 def test_save_video_round_trip(tmp_path, odd):
     write_mp4(tmp_path / "src.mp4", num_frames=9, fps=Fraction(24), audio=True)
