@@ -155,8 +155,8 @@ def check_range(start: int = 0, end: int | None = None, max_frames: int | None =
 
 def iter_video(path, start: int = 0, end: int | None = None, block: int = 16) -> Iterator[np.ndarray]:
     """Frames [start, end) at the video's own (displayed) resolution, `block` at a time: [n, H, W, 3] float32
-    in [0, 1], decoded as `load_video` decodes them — for a long video's full-resolution results, written
-    without holding all of its frames."""
+    in [0, 1], decoded as `load_video` decodes them — for a video's full-resolution results, written without
+    holding all of its frames (`outputs.FullVideo`)."""
     path = check_path(path)
     if block < 1:
         raise ValueError(f"block must be ≥ 1, not {block}")
