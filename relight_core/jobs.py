@@ -63,7 +63,7 @@ class JobPlan:
 
     frames: np.ndarray
     requests: list[tuple[str, RelightRequest]]
-    source: media.Media | None = None
+    source: media.Media
 
 
 def load_inputs(job: MediaJob) -> JobInputs:
@@ -148,10 +148,10 @@ def write_job(job: MediaJob, relighter: Relighter, inputs: JobInputs, plan: JobP
     """Run every request of a planned job and write its outputs into `folder`; `follow(prefix, events)`
     consumes one request's events (e.g. to drive a progress bar) and returns its result."""
     written = []
-    source = plan.source or inputs.source
+    source = plan.source
     for prefix, request in plan.requests:
         result = follow(prefix, relighter.run(request))
-        if inputs.source is None and not job.raw:  # a video: at its own size, a block at a time
+        if source.is_video and not job.raw:  # at its own size from its file, a block at a time
             clips = result_clips(result, job.mode, plan.frames)
             written += list(write_outputs(clips, folder, True, source.fps, source.audio_path, source.audio_start,
                                           prefix, full=FullVideo(job.input, *job.frames),

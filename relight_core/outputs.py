@@ -107,11 +107,19 @@ def write_outputs(clips: dict[str, np.ndarray], folder: Path, video: bool, fps: 
         stem = Path(folder) / f"{prefix}{name}{suffix}"
         middle = frames.shape[0] // 2
         if full is not None and video:
-            files[name] = save_clip(stem, full_resolution_blocks(full, working, frames), True, fps, audio_path,
-                                    audio_start, num_frames=len(frames))
+            kept = []   # the middle frame, caught on its way to the clip (not decoded again for the still)
+
+            def blocks(frames=frames, middle=middle, kept=kept):
+                at = 0
+                for block in full_resolution_blocks(full, working, frames):
+                    if at <= middle < at + len(block):
+                        kept.append(block[middle - at])
+                    at += len(block)
+                    yield block
+
+            files[name] = save_clip(stem, blocks(), True, fps, audio_path, audio_start, num_frames=len(frames))
             if stills:
-                files[f"{name}_still"] = save_still(stem, guided_ratio_upsample(
-                    full.frame(middle), working[middle], frames[middle]))
+                files[f"{name}_still"] = save_still(stem, kept[0])
             continue
         files[name] = save_clip(stem, frames, video, fps, audio_path, audio_start)
         if stills:

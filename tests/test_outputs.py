@@ -65,3 +65,21 @@ def _umask() -> int:
     mask = os.umask(0)
     os.umask(mask)
     return mask
+
+
+def test_a_video_written_from_its_file_gives_the_whole_clips_frames_and_middle_still(tmp_path):
+    # write_outputs(full=FullVideo) brings a video's results to its own size 16 frames at a time from the file; its
+    # still is the middle frame caught on the way. Both must be what upsampling the whole clip at once gives.
+    from relight_core.outputs import FullVideo
+
+    clip = make_mp4(tmp_path / "clip.mp4", frames=20, width=48, height=32)
+    full = media.load_video(clip).frames
+    working = media.resize_frames(full, 24)
+    relit = np.clip(working * np.linspace(0.5, 1.5, 20, dtype=np.float32)[:, None, None, None], 0, 1)
+    whole = result_clips(SimpleNamespace(relit=relit), "render", working, full)["relit"]
+    files = write_outputs({"relit": relit}, tmp_path / "out", True, 12.0, stills=True, full=FullVideo(str(clip)),
+                          working=working)
+    still = media.load_media(files["relit_still"]).frames[0]
+    media.save_image(tmp_path / "expected.png", whole[10])
+    assert np.array_equal(still, media.load_media(tmp_path / "expected.png").frames[0])
+    assert media.probe_video(files["relit"]).num_frames == 20

@@ -138,7 +138,11 @@ def steadiness(fitted, target, mask=None) -> dict[str, float]:
 def protocol_metrics(pred, target, mask=None) -> dict[str, float]:
     """{"psnr", "ssim"} of pred against target after the per-channel scale fit on the mask; for a clip
     also its `steadiness` ("temporal", "flicker")."""
-    fitted, _ = scale_fit(pred, target, mask)
+    return _fitted_metrics(scale_fit(pred, target, mask)[0], target, mask)
+
+
+def _fitted_metrics(fitted, target, mask=None) -> dict[str, float]:
+    """`protocol_metrics` of a prediction already scale-fitted."""
     return {"psnr": psnr(fitted, target, mask), "ssim": ssim(fitted, target, mask),
             **steadiness(fitted, target, mask)}
 
@@ -151,5 +155,4 @@ def protocol_psnr(pred, target, mask=None) -> float:
 def albedo_metrics(pred, target, mask=None) -> dict[str, float]:
     """`protocol_metrics` plus "delta_e2000" of the same scale-fitted prediction."""
     fitted, _ = scale_fit(pred, target, mask)
-    return {"psnr": psnr(fitted, target, mask), "ssim": ssim(fitted, target, mask),
-            "delta_e2000": delta_e2000(fitted, target, mask), **steadiness(fitted, target, mask)}
+    return {**_fitted_metrics(fitted, target, mask), "delta_e2000": delta_e2000(fitted, target, mask)}
