@@ -197,3 +197,80 @@ def test_sigterm_inside_mitsubas_render_stops_the_run_instead_of_failing_the_sce
     assert code == 128 + signal.SIGTERM, err
     assert "stopped." in err and "failed" not in err and "Traceback" not in err, err
     assert not (out / "train" / "failed.csv").exists()
+
+
+# ---------------------------------------------------------------- where and how long render-data renders
+
+def _cuda_renders() -> bool:
+    from relight_core.data.render import _cuda_problem
+
+    try:
+        return _cuda_problem() is None
+    finally:
+        init_mitsuba(threads=1)  # the probe leaves the CUDA variant selected where it works
+
+
+def test_a_time_budget_starts_no_scene_after_it_and_the_same_command_renders_the_rest(tmp_path):
+    """--minutes: a scene already rendering finishes, none starts after the budget, the exit is clean,
+    and running the command again without it renders what is left — the files of an uninterrupted run."""
+    out, whole = tmp_path / "budget", tmp_path / "whole"
+    run = ["--scenes=2", "--frames=1", "--size=64", "--spp=400", "--seed=5", "--workers=1"]
+    # ~1 s a light at 400 spp: the first scene outlasts the 0.3 s, so exactly one is rendered
+    code, stdout, stderr = main_capturing(["render-data", "--out", str(out), *run, "--minutes=0.005"])
+    assert code == 0, stderr
+    assert "0.005 minutes are up: 1 scene not started; the same command renders them." in stderr
+    assert "1 of 2 scenes done, 0 failed." in stderr and "Traceback" not in stderr
+    manifest = json.loads((out / "train" / "manifest.json").read_text())
+    assert [s["path"] for s in manifest["samples"]] == ["scene_000000"]
+    assert not (out / "train" / "scene_000001").exists()
+    code, _, stderr = main_capturing(["render-data", "--out", str(out), *run])
+    assert code == 0, stderr
+    assert "2 scenes: 1 done, 1 to run." in stderr and "minutes are up" not in stderr
+    code, _, stderr = main_capturing(["render-data", "--out", str(whole), *run])
+    assert code == 0, stderr
+    assert _tree(out) == _tree(whole)
+
+
+def test_the_device_is_recorded_and_a_gpu_where_none_renders_is_one_sentence(tmp_path):
+    """Each scene's meta.json names the Mitsuba variant that rendered it; --device cuda where Mitsuba's CUDA
+    variant cannot render ends with one sentence and exit 2 before anything is written."""
+    out = tmp_path / "data"
+    code, _, stderr = main_capturing(["render-data", "--out", str(out), *[f"--{k}={v}" for k, v in RUN.items()],
+                                      "--scenes=1", "--workers=1", "--device=cpu"])
+    assert code == 0, stderr
+    meta = json.loads((out / "train" / "scene_000000" / "meta.json").read_text())
+    assert meta["render"]["variant"] == "llvm_ad_rgb"
+    if _cuda_renders():
+        pytest.skip("Mitsuba renders on a CUDA GPU here (test_cuda_renders_the_scenes_the_cpu_renders covers it)")
+    code, stdout, stderr = main_capturing(["render-data", "--out", str(tmp_path / "gpu"), "--scenes=1",
+                                           "--frames=1", "--size=32", "--spp=4", "--device=cuda"])
+    assert code == 2 and stdout == ""
+    assert stderr.startswith("error: Mitsuba cannot render on a CUDA GPU here (") and stderr.count("\n") == 1, stderr
+    assert "render with --device cpu" in stderr and "Traceback" not in stderr
+    assert not (tmp_path / "gpu").exists()
+    code, _, stderr = main_capturing(["render-data", "--out", str(tmp_path / "auto"), "--scenes=1", "--frames=1",
+                                      "--size=32", "--spp=4", "--workers=1", "--device=auto", "--quiet"])
+    assert code == 0, stderr
+    meta = json.loads((tmp_path / "auto" / "train" / "scene_000000" / "meta.json").read_text())
+    assert meta["render"]["variant"] == "llvm_ad_rgb"  # auto: the CPU where no GPU renders
+
+
+def test_cuda_renders_the_scenes_the_cpu_renders(tmp_path):
+    """On a machine whose GPU Mitsuba can use: the same seed gives the same scenes on the GPU as on the CPU,
+    their images equal to well within the render noise (the same sampler streams; the film's summation order
+    differs)."""
+    if not _cuda_renders():
+        pytest.skip("Mitsuba cannot render on a CUDA GPU on this machine")
+    from relight_core.data.dataset import read_stream
+    from relight_core.evaluation.metrics import psnr
+
+    run = ["--scenes=2", "--frames=1", "--size=64", "--spp=64", "--seed=3", "--workers=1", "--quiet"]
+    for device in ("cpu", "cuda"):
+        code, _, stderr = main_capturing(["render-data", "--out", str(tmp_path / device), *run, f"--device={device}"])
+        assert code == 0, stderr
+    for i in range(2):
+        cpu, gpu = (tmp_path / d / "train" / f"scene_{i:06d}" for d in ("cpu", "cuda"))
+        meta_cpu, meta_gpu = (json.loads((p / "meta.json").read_text()) for p in (cpu, gpu))
+        assert meta_gpu["render"]["variant"] == "cuda_ad_rgb" and meta_cpu["scene"] == meta_gpu["scene"]
+        for name in ("rgb0", "rgb1", "albedo"):
+            assert psnr(read_stream(gpu, name, [0]), read_stream(cpu, name, [0])) > 32.0, (i, name)

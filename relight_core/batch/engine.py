@@ -23,6 +23,7 @@ import signal
 import socket
 import sys
 import threading
+import time
 from collections import deque
 from dataclasses import dataclass
 from pathlib import Path
@@ -276,8 +277,10 @@ class ModelWorker:
 
 def run_units(ray, units: Sequence[Unit], count: int, start_worker: Callable[[], Any] | None,
               call: Callable[[Any, Unit], Any], finish: Callable[[Unit, Any], None],
-              failed: Callable[[Unit, str], Any], noun: str, retry: Callable[[Unit], str]) -> None:
-    """Run `units`, at most `count` at a time, and hand each result to `finish(unit, result)` as it comes.
+              failed: Callable[[Unit, str], Any], noun: str, retry: Callable[[Unit], str],
+              deadline: float | None = None) -> None:
+    """Run `units`, at most `count` at a time, and hand each result to `finish(unit, result)` as it comes;
+    after the `time.monotonic()` `deadline` (if any) no unit starts, those running finish, the rest are left.
 
     `start_worker()` makes a worker (a Ray actor; with `ray` None, an object in this process), or is
     None for plain Ray tasks. `call(worker, unit)` starts a unit: with Ray it returns the ObjectRef
@@ -286,9 +289,14 @@ def run_units(ray, units: Sequence[Unit], count: int, start_worker: Callable[[],
     a worker process that died (the unit alone fails, `retry(unit)` says how to run it again, and an
     actor is replaced) or an exception escaping the worker. An InputError escaping a worker stops the
     run with that sentence (a model that cannot load: every unit would fail)."""
+    def time_left() -> bool:
+        return deadline is None or time.monotonic() < deadline
+
     if ray is None:
         worker = start_worker() if start_worker else None
         for unit in units:
+            if not time_left():
+                return
             finish(unit, call(worker, unit))
         return
     from ray.exceptions import RayError, RayTaskError
@@ -296,10 +304,12 @@ def run_units(ray, units: Sequence[Unit], count: int, start_worker: Callable[[],
     idle = [start_worker() if start_worker else None for _ in range(count)]
     pending, running = deque(units), {}
     try:
-        while pending or running:
-            while idle and pending:  # each worker holds one unit at a time
+        while running or (pending and time_left()):
+            while idle and pending and time_left():  # each worker holds one unit at a time
                 worker, unit = idle.pop(), pending.popleft()
                 running[call(worker, unit)] = (worker, unit)
+            if not running:  # the deadline passed between the two checks
+                break
             ready, _ = ray.wait(list(running), num_returns=1, timeout=POLL_S)
             for ref in ready:
                 worker, unit = running.pop(ref)

@@ -63,9 +63,11 @@ def remove_partial(folder: Path) -> None:
 
 def run_samples(split_dir: Path, total: int, todo: Sequence[Sample], ray, count: int,
                 start_worker: Callable[[], Any] | None, call: Callable[[Any, Sample], Any], noun: str,
-                desc: str, progress: bool = True, notes: Sequence[str] = ()) -> DataSummary:
+                desc: str, progress: bool = True, notes: Sequence[str] = (),
+                deadline: float | None = None) -> DataSummary:
     """Run the unfinished samples `todo` (of `total` in the split) on `count` workers (see
-    engine.run_units), report and record each failure, and rewrite the split's manifest."""
+    engine.run_units; none starts after the `time.monotonic()` `deadline`), report and record each
+    failure, and rewrite the split's manifest."""
     from relight_core.data.dataset import write_manifest
 
     failed_file = split_dir / FAILED_FILE
@@ -75,9 +77,10 @@ def run_samples(split_dir: Path, total: int, todo: Sequence[Sample], ray, count:
     for text in notes:
         bar.note(text)
     failures: dict[str, str] = {}
-    cpu = [0.0]
+    cpu, ran = [0.0], [0]
 
     def finish(sample: Sample, result: UnitResult) -> None:
+        ran[0] += 1
         if result.status == FAILED:
             remove_partial(sample.folder)
             failures[sample.item] = result.error
@@ -93,11 +96,11 @@ def run_samples(split_dir: Path, total: int, todo: Sequence[Sample], ray, count:
         if runnable:
             run_units(ray, runnable, count, start_worker, call, finish,
                       failed=lambda sample, text: UnitResult(sample.item, FAILED, 0.0, text),
-                      noun=noun, retry=lambda sample: "run the command again to retry it")
+                      noun=noun, retry=lambda sample: "run the command again to retry it", deadline=deadline)
     finally:
         bar.close()
         manifest = write_manifest(split_dir)
-    return DataSummary(total, bar.done, len(failures), len(todo), manifest, failures,
+    return DataSummary(total, bar.done, len(failures), ran[0], manifest, failures,
                        time.perf_counter() - started, cpu[0])
 
 

@@ -20,13 +20,23 @@ def add_data_commands(subparsers) -> None:
     p.add_argument("--frames", type=positive_int, default=9, help="frames per scene; the tokenizer takes 1 + 8k (1 = images, 9, 17, ...)")
     p.add_argument("--size", type=positive_int, default=128, help="frame side in pixels")
     p.add_argument("--spp", type=positive_int, default=64, help="samples per pixel (rounded up to a square, k×k stratified)")
-    p.add_argument("--seed", type=int, default=0, help="dataset seed: same seed, same files")
+    p.add_argument("--seed", type=int, default=0,
+                   help="dataset seed: same seed, same scenes (on the CPU the same files, byte for byte)")
     p.add_argument("--workers", type=positive_int, default=None,
                    help="scenes rendered at once, one CPU each (default: one per CPU of this machine, or of the "
-                        "cluster with --ray-address); 1 without --ray-address renders in this process, without Ray")
+                        "cluster with --ray-address; with --device cuda, as many as --gpus-per-worker fits on the "
+                        "GPUs); 1 without --ray-address renders in this process, without Ray")
     p.add_argument("--ray-address", default=None, metavar="HOST:PORT", help=RAY_ADDRESS_HELP)
     p.add_argument("--split", choices=("train", "test"), default="train",
                    help="test uses held-out probes, meshes and textures")
+    p.add_argument("--device", choices=("cpu", "cuda", "auto"), default="cpu",
+                   help="cpu: Mitsuba's llvm_ad_rgb (the same bytes on every run; default); cuda: its cuda_ad_rgb on "
+                        "an NVIDIA GPU (the same scenes, images equal to within the render noise); auto: cuda where "
+                        "it renders, else cpu")
+    p.add_argument("--gpus-per-worker", type=finite_float(0.0, 64.0, low_open=True, what="GPUs per worker"),
+                   default=0.25, help="with --device cuda: each scene's share of a GPU (default 0.25: 4 at once)")
+    p.add_argument("--minutes", type=finite_float(0.0, 1e6, low_open=True, what="minutes"), default=None,
+                   help="start no scene after this many minutes; the same command renders the rest later")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=_render_data)
 
@@ -60,7 +70,8 @@ def _render_data(args) -> int:
         raise InputError(f"--size {args.size} is not a multiple of 16; the tokenizer needs one (e.g. 128).")
     _check_address(args.ray_address)
     config = RenderConfig(out=args.out, scenes=args.scenes, frames=args.frames, size=args.size, spp=args.spp,
-                          seed=args.seed, workers=args.workers, split=args.split, address=args.ray_address)
+                          seed=args.seed, workers=args.workers, split=args.split, address=args.ray_address,
+                          device=args.device, gpus_per_worker=args.gpus_per_worker, minutes=args.minutes)
     return report(render_dataset(config, progress=not args.quiet), "scene")
 
 

@@ -1,9 +1,16 @@
 """`render-data`: render a split of synthetic scenes to disk — deterministic, resumable, parallel on Ray.
 
-Each scene is one Ray task declaring one CPU (Mitsuba on one Dr.Jit thread), on a local Ray instance
-of `workers` CPUs, or on the cluster at `address`; `workers == 1` without an address renders in this
-process instead (no Ray start-up for a small job). Either way the units go through the engine the
-batch command uses (relight_core/batch/engine.py, samples.py): progress, failure isolation, resume.
+Each scene is one Ray task declaring one CPU (Mitsuba's llvm_ad_rgb variant on one Dr.Jit thread), on a
+local Ray instance of `workers` CPUs, or on the cluster at `address`; `workers == 1` without an address
+renders in this process instead (no Ray start-up for a small job). With `device` "cuda" (or "auto" where a
+GPU renders) the scenes render with Mitsuba's cuda_ad_rgb variant, each task declaring `gpus_per_worker`
+of a GPU. Either way the units go through the engine the batch command uses (relight_core/batch/engine.py,
+samples.py): progress, failure isolation, resume; `minutes` stops starting new scenes once that much
+time has passed (the next run renders the rest).
+
+Same seed, same scenes. On the CPU the files are the same bytes on every run; a GPU accumulates the film in
+whatever order its threads finish, so its images agree with the CPU's to within the render noise, not bit
+for bit, and each scene's meta.json names the variant it was rendered with.
 """
 
 from __future__ import annotations
@@ -22,8 +29,9 @@ from relight_core.batch.engine import (DONE, FAILED, UnitResult, engine, locked,
 from relight_core.batch.samples import DataSummary, Sample, run_samples
 from relight_core.colour import linear_to_srgb
 from relight_core.data.dataset import is_finished, write_frame, write_meta
-from relight_core.data.render import SceneRenderer, init_mitsuba, stratified_spp
+from relight_core.data.render import CPU_VARIANT, SceneRenderer, init_mitsuba, render_device, stratified_spp
 from relight_core.data.scenes import SPLITS, SceneSpec, camera_to_world, probe_yaw, sample_scene
+from relight_core.errors import InputError
 
 
 @dataclass(frozen=True)
@@ -40,6 +48,9 @@ class RenderConfig:
     workers: int | None = None
     split: str = "train"
     address: str | None = None  # a running Ray cluster; None: a local instance (or this process, workers 1)
+    device: str = "cpu"         # cpu (llvm_ad_rgb: the same bytes every run), cuda (cuda_ad_rgb) or auto
+    gpus_per_worker: float = 0.25  # with cuda: each scene task's share of a GPU (4 scenes at once on one)
+    minutes: float | None = None   # start no scene after this many minutes (None: render them all)
 
 
 def scene_dir(config: RenderConfig, index: int) -> Path:
@@ -53,7 +64,7 @@ def frame_seed(spec: SceneSpec, frame: int) -> int:
                .generate_state(1)[0] & 0x7FFFFFFF)
 
 
-def render_scene(spec: SceneSpec, size: int, spp: int, out_dir: Path) -> None:
+def render_scene(spec: SceneSpec, size: int, spp: int, out_dir: Path, variant: str = CPU_VARIANT) -> None:
     """Render every frame of a scene under both probes and write it in the dataset format."""
     out_dir.mkdir(parents=True, exist_ok=True)
     with SceneRenderer(spec, size, spp) as renderer:
@@ -68,7 +79,7 @@ def render_scene(spec: SceneSpec, size: int, spp: int, out_dir: Path) -> None:
     write_meta(out_dir, {
         "kind": "synthetic", "frames": spec.frames, "height": size, "width": size, "lights": 2,
         "motion": list(spec.motion), "probes": [p.source for p in spec.probes],
-        "render": {"renderer": "mitsuba3", "spp": stratified_spp(spp), "max_depth": 3},
+        "render": {"renderer": "mitsuba3", "variant": variant, "spp": stratified_spp(spp), "max_depth": 3},
         "camera_to_world": [camera_to_world(spec, t).round(6).tolist() for t in range(spec.frames)],
         "probe_yaw": [[round(probe_yaw(spec, light, t), 6) for t in range(spec.frames)] for light in (0, 1)],
         "scene": asdict(spec),
@@ -78,12 +89,14 @@ def render_scene(spec: SceneSpec, size: int, spp: int, out_dir: Path) -> None:
 def render_unit(config: RenderConfig, index: int) -> UnitResult:
     """Render scene `index` into its folder (a Ray task, or a call in this process); a failure is the
     scene's result, with one sentence."""
-    init_mitsuba(threads=1)  # once per process: the variant; one thread keeps the bits reproducible
+    # once per process: the variant (config.device is resolved by render_dataset); one CPU thread keeps the
+    # bits reproducible
+    variant = init_mitsuba(threads=1, device=config.device)
     name = scene_dir(config, index).name
     wall, cpu = time.perf_counter(), time.process_time()
     try:
         spec = sample_scene(config.seed, config.split, index, config.frames)
-        render_scene(spec, config.size, config.spp, scene_dir(config, index))
+        render_scene(spec, config.size, config.spp, scene_dir(config, index), variant)
         status, error = DONE, ""
     except Exception as exc:  # a full disk, a bug in one scene: this scene's result
         stop_if_interrupted(exc)  # but a SIGTERM inside Mitsuba's render stops the run
@@ -94,8 +107,17 @@ def render_unit(config: RenderConfig, index: int) -> UnitResult:
 def render_dataset(config: RenderConfig, progress: bool = True) -> DataSummary:
     """Render the missing scenes of a split (finished ones are skipped) and rewrite its manifest;
     `summary.manifest` is the manifest's path, `summary.failures` the scenes that failed."""
+    if config.minutes is not None and not config.minutes > 0:
+        raise InputError(f"--minutes {config.minutes} is not a positive number of minutes.")
+    deadline = None if config.minutes is None else time.monotonic() + 60 * config.minutes  # from the start
+    why_not: list[str] = []
+    device = render_device(config.device, why_not)  # "auto" settled here, once: every scene renders on it
+    if config.device == "auto" and progress:
+        print(f"render-data: --device auto renders on the {'GPU (cuda_ad_rgb)' if device == 'cuda' else 'CPU'}"
+              f"{f': no CUDA GPU Mitsuba can use ({why_not[0]})' if why_not else ''}.", file=sys.stderr)
     config = dataclasses.replace(config, out=Path(config.out).expanduser().resolve(),  # workers' paths
-                                 workers=config.workers or (None if config.address else os.cpu_count() or 1))
+                                 device=device, workers=config.workers or (
+                                     None if config.address or device == "cuda" else os.cpu_count() or 1))
     split_dir = config.out / config.split
     split_dir.mkdir(parents=True, exist_ok=True)
     with locked(split_dir, ".render-data.lock", "render-data run", "--out or --split"):
@@ -104,16 +126,23 @@ def render_dataset(config: RenderConfig, progress: bool = True) -> DataSummary:
         desc = f"render-data {config.split}"
         if not todo:  # nothing to render: no Ray
             return run_samples(split_dir, config.scenes, [], None, 1, None, None, "scene", desc, progress)
-        with engine(config.address, config.workers, num_cpus=config.workers) as ray:
+        num_cpus = config.workers if device == "cpu" else None
+        with engine(config.address, config.workers, num_cpus=num_cpus) as ray:
             if ray is None:
                 count, call = 1, lambda _, sample: render_unit(config, *sample.args)
             else:
-                plan = worker_plan(ray, len(todo), config.workers, device="cpu", gpu_capable=False)
+                plan = worker_plan(ray, len(todo), config.workers, device=device, gpu_capable=device == "cuda",
+                                   gpus_per_worker=config.gpus_per_worker)
                 # No retries: a scene whose process dies fails alone, with its sentence.
-                task = ray.remote(render_unit).options(num_cpus=1, max_retries=0)
+                task = ray.remote(render_unit).options(**plan.demand, max_retries=0)
                 count, call = plan.count, lambda _, sample: task.remote(config, *sample.args)
-            summary = run_samples(split_dir, config.scenes, todo, ray, count, None, call, "scene", desc, progress)
-    rendered = len(todo) - len(summary.failures)
+            summary = run_samples(split_dir, config.scenes, todo, ray, count, None, call, "scene", desc, progress,
+                                  deadline=deadline)
+    rendered = summary.ran - len(summary.failures)
+    left = summary.total - summary.done - len(summary.failures)
+    if deadline is not None and left:
+        print(f"{config.minutes:g} minutes are up: {left} scene{'s' * (left != 1)} not started; the same command "
+              "renders them.", file=sys.stderr)
     if rendered and progress:
         images = rendered * config.frames * 2  # one image per frame and light
         print(f"rendered {rendered} scenes = {images} images (frame × light) in {summary.seconds:.1f} s on "

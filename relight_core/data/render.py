@@ -30,6 +30,7 @@ from relight_core.data.meshes import build_mesh, write_ply
 from relight_core.data.scenes import (GROUND_SIZE, MaterialSpec, SceneSpec, camera_position,
                                       camera_to_world, object_pose, probe_yaw)
 from relight_core.data.textures import make_texture
+from relight_core.errors import InputError
 
 _variant: str | None = None
 TEXTURE_SIZE = 256
@@ -37,21 +38,81 @@ PROBE_HEIGHT = 128  # procedural probes are generated at 128×256
 AOV_SPP = 16  # albedo/mask samples per pixel (anti-aliasing only: no noise to average out)
 
 
-def init_mitsuba(threads: int | None = None) -> str:
-    """Select the Mitsuba variant once per process (llvm_ad_rgb, else scalar_rgb with a warning)."""
+CPU_VARIANT, CUDA_VARIANT = "llvm_ad_rgb", "cuda_ad_rgb"
+RENDER_DEVICES = ("auto", "cpu", "cuda")
+
+
+def _find_llvm() -> None:
+    if "DRJIT_LIBLLVM_PATH" not in os.environ:
+        found = sorted(glob.glob("/usr/lib/*/libLLVM-19.so*") + glob.glob("/usr/lib/*/libLLVM.so.19*"))
+        if found:
+            os.environ["DRJIT_LIBLLVM_PATH"] = found[0]
+
+
+def _cuda_problem() -> str | None:
+    """Why Mitsuba's CUDA variant cannot render in this process (None when it can): it is selected and a
+    two-pixel scene rendered, so a missing GPU, driver or OptiX shows here rather than in every scene."""
+    import mitsuba as mi
+
+    if CUDA_VARIANT not in mi.variants():
+        return f"this Mitsuba build has no {CUDA_VARIANT} variant"
+    before = mi.variant()
+    try:
+        mi.set_variant(CUDA_VARIANT)
+        scene = mi.load_dict({"type": "scene", "integrator": {"type": "path", "max_depth": 3},
+                              "sensor": {"type": "perspective", "film": {"type": "hdrfilm", "width": 2, "height": 1}},
+                              "shape": {"type": "sphere", "to_world": mi.ScalarTransform4f().translate([0, 0, 3])},
+                              "light": {"type": "constant"}})
+        np.asarray(mi.render(scene, spp=1))
+        return None
+    except Exception as err:  # no GPU, no driver, no OptiX: the reason, in Dr.Jit's words
+        text = " ".join(str(err).split())
+        if "CUDA backend hasn't been initialized" in text:  # what Dr.Jit says where it finds no CUDA driver
+            return "Dr.Jit finds no CUDA driver or GPU"
+        return text[:200] or type(err).__name__
+    finally:
+        if before is not None and before != CUDA_VARIANT:
+            mi.set_variant(before)
+
+
+def render_device(device: str | None = "auto", why_not: list[str] | None = None) -> str:
+    """The device `render-data` renders on: "cuda" (Mitsuba's cuda_ad_rgb) when asked for or, for "auto", when
+    it renders here; else "cpu" (llvm_ad_rgb). Asking for "cuda" where it cannot render is an InputError;
+    "auto" that falls back to the CPU appends the reason to `why_not`."""
+    device = device or "auto"
+    if device not in RENDER_DEVICES:
+        raise InputError(f"--device {device} is not one of {', '.join(RENDER_DEVICES)}.")
+    if device == "cpu":
+        return "cpu"
+    problem = _cuda_problem()
+    if problem is None:
+        return "cuda"
+    if device == "cuda":
+        raise InputError(f"Mitsuba cannot render on a CUDA GPU here ({problem}); render with --device cpu, "
+                         "or run on a machine with an NVIDIA GPU and its driver.")
+    if why_not is not None:
+        why_not.append(problem)
+    return "cpu"
+
+
+def init_mitsuba(threads: int | None = None, device: str = "cpu") -> str:
+    """Select the process's Mitsuba variant for `device` ("cpu": llvm_ad_rgb, else scalar_rgb with a warning;
+    "cuda": cuda_ad_rgb) and return it. A process keeps the variant it first selected for a device."""
     global _variant
     import drjit as dr
     import mitsuba as mi
 
-    if _variant is None:
-        if "DRJIT_LIBLLVM_PATH" not in os.environ:
-            found = sorted(glob.glob("/usr/lib/*/libLLVM-19.so*") + glob.glob("/usr/lib/*/libLLVM.so.19*"))
-            if found:
-                os.environ["DRJIT_LIBLLVM_PATH"] = found[0]
+    if device == "cuda":
+        if _variant != CUDA_VARIANT:
+            mi.set_variant(CUDA_VARIANT)
+            _variant = mi.variant()
+        return _variant
+    if _variant is None or _variant == CUDA_VARIANT:
+        _find_llvm()
         try:
-            mi.set_variant("llvm_ad_rgb")
+            mi.set_variant(CPU_VARIANT)
         except (ImportError, AttributeError, RuntimeError) as err:
-            warnings.warn(f"Mitsuba's llvm_ad_rgb variant is unavailable ({err}); rendering with the "
+            warnings.warn(f"Mitsuba's {CPU_VARIANT} variant is unavailable ({err}); rendering with the "
                           "~3x slower scalar_rgb. Install libllvm19 to fix.", RuntimeWarning, stacklevel=2)
             mi.set_variant("scalar_rgb")
         _variant = mi.variant()
