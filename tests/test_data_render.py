@@ -231,6 +231,19 @@ def test_a_time_budget_starts_no_scene_after_it_and_the_same_command_renders_the
     assert _tree(out) == _tree(whole)
 
 
+def test_a_time_budget_on_ray_lets_the_running_scene_finish_and_sends_no_other(ray_address, tmp_path):
+    """The same budget through Ray tasks: the scene sent before the budget ran out finishes, none is sent after."""
+    out = tmp_path / "ray-budget"
+    code, _, stderr = main_capturing(["render-data", "--out", str(out), "--scenes=3", "--frames=1", "--size=64",
+                                      "--spp=400", "--seed=5", "--workers=1", f"--ray-address={ray_address}",
+                                      "--minutes=0.005"])
+    assert code == 0, stderr
+    assert "0.005 minutes are up: 2 scenes not started; the same command renders them." in stderr
+    assert "1 of 3 scenes done, 0 failed." in stderr and "Traceback" not in stderr
+    assert [s["path"] for s in json.loads((out / "train" / "manifest.json").read_text())["samples"]] == \
+        ["scene_000000"]
+
+
 def test_the_device_is_recorded_and_a_gpu_where_none_renders_is_one_sentence(tmp_path):
     """Each scene's meta.json names the Mitsuba variant that rendered it; --device cuda where Mitsuba's CUDA
     variant cannot render ends with one sentence and exit 2 before anything is written."""
