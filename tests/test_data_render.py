@@ -268,6 +268,20 @@ def test_the_device_is_recorded_and_a_gpu_where_none_renders_is_one_sentence(tmp
     assert meta["render"]["variant"] == "llvm_ad_rgb"  # auto: the CPU where no GPU renders
 
 
+def test_on_a_cluster_the_device_is_its_gpus(ray_address, tmp_path):
+    """With --ray-address the cluster's GPUs decide, not this machine's: auto renders on its CPUs when it has
+    none (and says so), cuda is refused in one sentence."""
+    code, _, stderr = _render_data(tmp_path / "auto", "--scenes=1", f"--ray-address={ray_address}", "--device=auto")
+    assert code == 0, stderr
+    assert "render-data: --device auto renders on the CPU." in stderr
+    meta = json.loads((tmp_path / "auto" / "train" / "scene_000000" / "meta.json").read_text())
+    assert meta["render"]["variant"] == "llvm_ad_rgb"
+    code, _, stderr = _render_data(tmp_path / "cuda", "--scenes=1", f"--ray-address={ray_address}", "--device=cuda")
+    assert code == 2
+    assert stderr == ("error: GPU workers were asked for (--device cuda), but the Ray cluster has no GPU; run with "
+                      "--device cpu or add GPU nodes.\n")
+
+
 def test_cuda_renders_the_scenes_the_cpu_renders(tmp_path):
     """On a machine whose GPU Mitsuba can use: the same seed gives the same scenes on the GPU as on the CPU,
     their images equal to well within the render noise (the same sampler streams; the film's summation order

@@ -29,7 +29,8 @@ from relight_core.batch.engine import (DONE, FAILED, UnitResult, engine, locked,
 from relight_core.batch.samples import DataSummary, Sample, run_samples
 from relight_core.colour import linear_to_srgb
 from relight_core.data.dataset import is_finished, write_frame, write_meta
-from relight_core.data.render import CPU_VARIANT, SceneRenderer, init_mitsuba, render_device, stratified_spp
+from relight_core.data.render import (CPU_VARIANT, RENDER_DEVICES, SceneRenderer, init_mitsuba, render_device,
+                                     stratified_spp)
 from relight_core.data.scenes import SPLITS, SceneSpec, camera_to_world, probe_yaw, sample_scene
 from relight_core.errors import InputError
 
@@ -89,12 +90,16 @@ def render_scene(spec: SceneSpec, size: int, spp: int, out_dir: Path, variant: s
 def render_unit(config: RenderConfig, index: int) -> UnitResult:
     """Render scene `index` into its folder (a Ray task, or a call in this process); a failure is the
     scene's result, with one sentence."""
-    # once per process: the variant (config.device is resolved by render_dataset); one CPU thread keeps the
-    # bits reproducible
-    variant = init_mitsuba(threads=1, device=config.device)
     name = scene_dir(config, index).name
     wall, cpu = time.perf_counter(), time.process_time()
     try:
+        # once per process: the variant (config.device is settled by render_dataset); one CPU thread keeps the
+        # bits reproducible
+        try:
+            variant = init_mitsuba(threads=1, device=config.device)
+        except (ImportError, RuntimeError) as exc:  # a cluster node whose GPU Mitsuba cannot use
+            raise InputError(f"Mitsuba could not select {config.device}'s variant on this worker "
+                             f"({' '.join(str(exc).split())[:160]}); render with --device cpu.") from None
         spec = sample_scene(config.seed, config.split, index, config.frames)
         render_scene(spec, config.size, config.spp, scene_dir(config, index), variant)
         status, error = DONE, ""
@@ -109,15 +114,16 @@ def render_dataset(config: RenderConfig, progress: bool = True) -> DataSummary:
     `summary.manifest` is the manifest's path, `summary.failures` the scenes that failed."""
     if config.minutes is not None and not config.minutes > 0:
         raise InputError(f"--minutes {config.minutes} is not a positive number of minutes.")
+    if config.device not in RENDER_DEVICES:
+        raise InputError(f"--device {config.device} is not one of {', '.join(RENDER_DEVICES)}.")
     deadline = None if config.minutes is None else time.monotonic() + 60 * config.minutes  # from the start
+    # The device, settled once so that every scene renders on it: on this machine by rendering two pixels with
+    # the CUDA variant (render_device); on a cluster by its GPUs ("cuda" without GPUs is refused by worker_plan).
     why_not: list[str] = []
-    device = render_device(config.device, why_not)  # "auto" settled here, once: every scene renders on it
-    if config.device == "auto" and progress:
-        print(f"render-data: --device auto renders on the {'GPU (cuda_ad_rgb)' if device == 'cuda' else 'CPU'}"
-              f"{f': no CUDA GPU Mitsuba can use ({why_not[0]})' if why_not else ''}.", file=sys.stderr)
+    device = config.device if config.address else render_device(config.device, why_not)
     config = dataclasses.replace(config, out=Path(config.out).expanduser().resolve(),  # workers' paths
-                                 device=device, workers=config.workers or (
-                                     None if config.address or device == "cuda" else os.cpu_count() or 1))
+                                 workers=config.workers or (
+                                     None if config.address or device != "cpu" else os.cpu_count() or 1))
     split_dir = config.out / config.split
     split_dir.mkdir(parents=True, exist_ok=True)
     with locked(split_dir, ".render-data.lock", "render-data run", "--out or --split"):
@@ -128,6 +134,13 @@ def render_dataset(config: RenderConfig, progress: bool = True) -> DataSummary:
             return run_samples(split_dir, config.scenes, [], None, 1, None, None, "scene", desc, progress)
         num_cpus = config.workers if device == "cpu" else None
         with engine(config.address, config.workers, num_cpus=num_cpus) as ray:
+            if device == "auto":  # a cluster: its GPUs, if it has any
+                device = "cuda" if ray.cluster_resources().get("GPU", 0) > 0 else "cpu"
+            if config.device == "auto" and progress:
+                print(f"render-data: --device auto renders on the "
+                      f"{'GPU (cuda_ad_rgb)' if device == 'cuda' else 'CPU'}"
+                      f"{f': no CUDA GPU Mitsuba can use here ({why_not[0]})' if why_not else ''}.", file=sys.stderr)
+            config = dataclasses.replace(config, device=device)
             if ray is None:
                 count, call = 1, lambda _, sample: render_unit(config, *sample.args)
             else:
