@@ -76,6 +76,22 @@ def test_video_streams_chunks_and_keeps_fps(studio):
     assert sorted(Path(p).suffix for p in final[9]) == [".mp4", ".mp4"]
 
 
+def test_an_animated_gif_is_relit_as_a_clip_at_its_own_rate(studio):
+    client, tmp = studio
+    still = (media.load_media(REPO / "examples" / "inputs" / "objects.png").frames[0] * 255).astype(np.uint8)
+    frames = [Image.fromarray(np.roll(still, 6 * t, axis=1)[::4, ::4]) for t in range(5)]
+    gif = tmp / "pan.gif"
+    frames[0].save(gif, save_all=True, append_images=frames[1:], duration=80, loop=0)
+    shown = [plain(v) for v in client.predict(handle_file(str(gif)), api_name="/inspect_input")]
+    assert "5 frames at 12.5 fps" in shown[-1] and shown[-3:-1] == [0, 4]
+    preview = shown[1]["video"] if isinstance(shown[1], dict) else shown[1]
+    assert Path(preview).suffix == ".mp4" and media.load_media(preview).frames.shape[0] == 5  # a browser plays it
+    final = run_job(client, **relight_args(gif, frame_start=1, frame_end=4, size=64))[-1]
+    assert "Done" in final[0]
+    relit = media.load_media(final[5]["video"] if isinstance(final[5], dict) else final[5])
+    assert relit.is_video and relit.frames.shape[:3] == (4, 48, 64) and relit.fps == pytest.approx(12.5)
+
+
 def test_same_seed_reproduces_a_random_illumination(studio):
     client, tmp = studio
     image = scene_image(tmp / "seeds.png")

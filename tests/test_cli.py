@@ -46,6 +46,21 @@ def test_relight_video_keeps_frames_fps_and_audio(files, tmp_path):
             assert len(container.streams.audio) == 1
 
 
+def test_an_animated_gif_is_relit_as_a_video_without_sound(files, tmp_path):
+    still = np.asarray(Image.open(files["png"]).convert("RGB"))
+    frames = [Image.fromarray(np.roll(still, 5 * t, axis=1)) for t in range(6)]
+    gif = tmp_path / "pan.gif"
+    frames[0].save(gif, save_all=True, append_images=frames[1:], duration=50, loop=0)
+    assert main(["relight", str(gif), "--probe", str(files["probe"]), "--out", str(tmp_path / "out"), *FAST]) == 0
+    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["albedo.mp4", "relit.mp4"]
+    with av.open(str(tmp_path / "out" / "relit.mp4")) as container:
+        video = container.streams.video[0]
+        assert round(float(video.average_rate)) == 20 and not container.streams.audio
+        decoded = [f.to_ndarray(format="rgb24") for f in container.decode(video=0)]
+    assert len(decoded) == 6 and decoded[0].shape == still.shape
+    assert np.abs(decoded[0].astype(int) - decoded[-1].astype(int)).mean() > 1  # the frames move as the input's
+
+
 def test_augment_writes_one_result_per_seed(files, tmp_path):
     assert main(["augment", str(files["png"]), "--seeds", "0-2", "--out", str(tmp_path), *FAST]) == 0
     outs = sorted(p.name for p in tmp_path.iterdir())

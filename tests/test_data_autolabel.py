@@ -13,7 +13,7 @@ from relight_core.data.dataset import RelightDataset
 from tests.factory import main_capturing, make_mp4
 
 FAST = ["--model", "tiny", "--size", "32", "--steps", "1"]
-NOT_MEDIA = "{} is not a supported image or video; use PNG, JPEG, WebP, EXR, HDR, MP4, MOV or WebM."
+NOT_MEDIA = "{} is not a supported image or video; use PNG, JPEG, WebP, GIF, EXR, HDR, MP4, MOV or WebM."
 
 
 def test_autolabel_writes_video_albedo_pairs_in_the_dataset_format(tmp_path):

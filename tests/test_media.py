@@ -15,9 +15,11 @@ from PIL import Image
 from relight_core.errors import InputError
 from relight_core.media import (
     Media,
+    iter_video,
     load_image,
     load_media,
     load_video,
+    media_kind,
     probe_video,
     linear_to_srgb,
     read_hdr,
@@ -92,6 +94,67 @@ def test_detection_is_by_content_not_extension(tmp_path):
     assert load_media(tmp_path / "picture.mp4").frames.shape == (1, 8, 12, 3)
     write_mp4(tmp_path / "clip.png")
     assert load_media(tmp_path / "clip.png").is_video
+
+
+def flat_frames(count, height=12, width=20):
+    """`count` frames of one flat colour each, far apart: exact in a GIF's palette and in any codec."""
+    colours = [(230, 20, 20), (20, 200, 40), (30, 40, 220), (240, 240, 10), (10, 10, 10)]
+    return [np.full((height, width, 3), colours[i % len(colours)], np.uint8) for i in range(count)]
+
+
+@pytest.mark.parametrize("suffix,options", [(".gif", {}), (".png", {}), (".webp", {"lossless": True})])
+def test_an_animated_gif_png_or_webp_is_a_clip_with_its_frames_and_their_rate(tmp_path, suffix, options):
+    frames = flat_frames(5)
+    path = tmp_path / f"anim{suffix}"
+    images = [Image.fromarray(f) for f in frames]
+    images[0].save(path, save_all=True, append_images=images[1:], duration=[80, 80, 160, 80, 80], loop=0, **options)
+    assert media_kind(path) == "video"
+    info = probe_video(path)
+    assert (info.num_frames, info.width, info.height, info.has_audio) == (5, 20, 12, False)
+    assert info.fps == pytest.approx(12.5)  # 1000 / the median delay of 80 ms
+    clip = load_media(path)
+    assert clip.is_video and clip.fps == pytest.approx(12.5) and clip.audio_path is None
+    np.testing.assert_allclose(clip.frames, np.stack(frames) / 255.0, atol=1.5 / 255)
+    part = load_video(path, start=2, end=4)  # frames 2 and 3; frame 2 starts at 160 ms
+    np.testing.assert_allclose(part.frames, np.stack(frames[2:4]) / 255.0, atol=1.5 / 255)
+    assert part.audio_start == pytest.approx(0.16)
+    blocks = list(iter_video(path, 1, 5, 3))
+    assert [b.shape[0] for b in blocks] == [3, 1]
+    np.testing.assert_allclose(np.concatenate(blocks), clip.frames[1:5], atol=1e-6)
+    single = tmp_path / f"still{suffix}"
+    images[0].save(single, **options)  # one frame: an image, as before
+    assert media_kind(single) == "image" and load_media(single).frames.shape == (1, 12, 20, 3)
+
+
+def test_a_cameras_multi_picture_jpeg_stays_a_photo(tmp_path):
+    first, second = (Image.fromarray(f) for f in flat_frames(2))
+    first.save(tmp_path / "camera.jpg", format="MPO", save_all=True, append_images=[second])
+    assert Image.open(tmp_path / "camera.jpg").n_frames == 2  # two pictures, as a stereo camera writes
+    assert media_kind(tmp_path / "camera.jpg") == "image"
+    picture = load_media(tmp_path / "camera.jpg")
+    assert picture.frames.shape == (1, 12, 20, 3)
+    np.testing.assert_allclose(picture.frames[0], np.asarray(first) / 255.0, atol=0.03)
+
+
+def test_an_animations_transparency_goes_over_white_and_damage_is_one_sentence(tmp_path):
+    rgba = np.zeros((8, 8, 4), np.uint8)
+    rgba[..., 0], rgba[:4, :, 3], rgba[4:, :, 3] = 200, 255, 0  # red on top, transparent below
+    second = rgba.copy()
+    second[..., :3] = (0, 0, 200)
+    path = tmp_path / "alpha.png"
+    Image.fromarray(rgba).save(path, save_all=True, append_images=[Image.fromarray(second)], duration=50,
+                               disposal=1)
+    clip = load_media(path)
+    assert clip.frames.shape == (2, 8, 8, 3)
+    np.testing.assert_allclose(clip.frames[0, 0, 0], [200 / 255, 0, 0], atol=1e-6)
+    np.testing.assert_allclose(clip.frames[:, 7, 7], 1.0, atol=1e-6)  # transparent: white
+    np.testing.assert_allclose(clip.frames[1, 0, 0], [0, 0, 200 / 255], atol=1e-6)
+    assert clip.fps == pytest.approx(20.0)
+    data = path.read_bytes()
+    (tmp_path / "cut.png").write_bytes(data[: int(len(data) * 0.7)])
+    with pytest.raises(InputError) as info:
+        load_media(tmp_path / "cut.png")
+    assert "damaged or truncated" in str(info.value) and "cut.png" in str(info.value)
 
 
 def test_jpeg_exif_orientation(tmp_path):

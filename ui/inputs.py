@@ -12,11 +12,12 @@ from relight_core import media
 from relight_core.errors import InputError
 
 VIDEO_SUFFIXES = (".mp4", ".mov", ".webm", ".mkv", ".avi", ".m4v")
+ANIMATION_SUFFIXES = (".gif", ".png", ".apng", ".webp")  # a still or, by its content, a clip (media.animation)
 
 
 def frame_count(path, frame_start, frame_end) -> int:
     """How many frames the chosen range holds (1 for an image)."""
-    if Path(path).suffix.lower() not in VIDEO_SUFFIXES:
+    if not is_clip(path):
         return 1
     return max(1, int(frame_end) - int(frame_start) + 1)
 
@@ -45,10 +46,13 @@ def full_frames(path, frame_start, frame_end) -> np.ndarray | None:
 
 
 def is_video(path) -> bool:
-    """Whether the upload is a video; InputError when its content and its name disagree
-    (the page treats a file by its name, the readers by its content)."""
-    named_video = Path(path).suffix.lower() in VIDEO_SUFFIXES
+    """Whether the upload is a video (an animated GIF, PNG or WebP too); InputError when its content and its
+    name disagree (the page treats a file by its name, the readers by its content)."""
+    suffix = Path(path).suffix.lower()
+    named_video = suffix in VIDEO_SUFFIXES
     if not named_video and media.media_kind(path) == "video":
+        if suffix in ANIMATION_SUFFIXES:
+            return True
         raise InputError(f"{Path(path).name} is a video named like an image; give it its video extension "
                          "(.mp4, .mov, .webm) and upload it again.")
     if named_video:
@@ -57,6 +61,14 @@ def is_video(path) -> bool:
             raise InputError(f"{Path(path).name} is a still image named like a video; give it its image "
                              "extension (.png, .jpg) and upload it again.")
     return named_video
+
+
+def is_clip(path) -> bool:
+    """`is_video` for showing the page's video controls: False for a file that cannot be used."""
+    try:
+        return bool(path) and is_video(path)
+    except (InputError, OSError):
+        return False
 
 
 def whole_number(value, name: str) -> int:

@@ -11,12 +11,12 @@ import gradio as gr
 from relight_core.arguments import MAX_ENSEMBLE
 from relight_core.diffusion import SAMPLERS
 from relight_core.lighting import DEFAULT_ROTATION, MAX_PITCH_DEG, MAX_TINT, NEUTRAL_KELVIN
-from ui.inputs import VIDEO_SUFFIXES
+from ui.inputs import is_clip
 from ui.probes import probe_choices
 from ui.studio import Studio
 from ui.views import CLEAR, CLEAR_COMPARE, MODE_VIEWS, MODES, RANDOM_MODE, RunOutputs, status_html
 
-INPUT_TYPES = [".png", ".jpg", ".jpeg", ".webp", ".exr", ".mp4", ".mov", ".webm"]
+INPUT_TYPES = [".png", ".jpg", ".jpeg", ".webp", ".gif", ".exr", ".mp4", ".mov", ".webm"]
 PROBE_TYPES = [".hdr", ".exr"]
 SIZES = [64, 128, 192, 256, 320, 384, 512, 640, 768, 848, 1024]
 RESULT_HEIGHT = 300
@@ -265,7 +265,7 @@ def launch_kwargs() -> dict:
 
 def _show_video_row(path: str | None):
     """Video results, and the light sweep across the clip, only for a video (a still has no clip)."""
-    video = bool(path) and Path(path).suffix.lower() in VIDEO_SUFFIXES
+    video = is_clip(path)
     return gr.update(visible=video), gr.update(visible=video) if video else gr.update(visible=False, value=False)
 
 

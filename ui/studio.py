@@ -21,10 +21,12 @@ from relight_core import lighting, media, outputs, preview
 from relight_core.colour import colour_science
 from relight_core.errors import InputError
 from relight_core.pipeline import ChunkDone, Finished, Progress, Relighter, RelightRequest
-from ui.inputs import frame_count, full_frames, is_video, load_frames, whole_number
+from ui.inputs import ANIMATION_SUFFIXES, frame_count, full_frames, is_video, load_frames, whole_number
 from ui.probes import ProbeLibrary
 from ui.views import (CLEAR, CLEAR_COMPARE, MODE_VIEWS, MODES, RANDOM_MODE, RunOutputs, _duration,
                       _progress_text, field_error, field_note, precision_note, status_html)
+
+PREVIEW_SIDE = 640  # an animated image's upload is shown as an mp4 at most this long on a side
 
 
 @dataclass(frozen=True)
@@ -112,7 +114,13 @@ class Studio:
                 last = info.num_frames - 1
                 text = (f"Video: {info.width}×{info.height}, {info.num_frames} frames at {info.fps:.3g} fps"
                         f"{', with audio' if info.has_audio else ''}.")
-                return (gr.update(value=None, visible=False), gr.update(value=path, visible=True),
+                shown = path
+                if Path(path).suffix.lower() in ANIMATION_SUFFIXES:  # a GIF, APNG or WebP: browsers play an mp4
+                    clip = media.load_video(path, size=None if max(info.width, info.height) <= PREVIEW_SIDE
+                                            else PREVIEW_SIDE)
+                    shown = str(self._job_dir("inputs") / "input.mp4")
+                    media.save_video(shown, clip.frames, clip.fps)
+                return (gr.update(value=None, visible=False), gr.update(value=shown, visible=True),
                         gr.update(visible=True),
                         gr.update(maximum=last, value=0), gr.update(maximum=last, value=last), text)
             loaded = media.load_media(path)

@@ -50,12 +50,14 @@ def is_hdr(path: str) -> bool:
 
 
 def kind(path: str) -> str:
-    """'linear' (EXR/HDR), 'image' or 'video', judged from the file's bytes."""
+    """'linear' (EXR/HDR), 'image' or 'video' (animated GIF, APNG and WebP too), judged from the file's bytes."""
     if is_hdr(path):
         return "linear"
+    from relight_core.media.animation import animated  # it imports this module
+
     try:
-        with Image.open(path):
-            return "image"
+        with Image.open(path) as image:
+            return "video" if animated(image) else "image"  # an animated GIF, APNG or WebP is a clip
     except Image.DecompressionBombError:
         return "image"  # refused with a clear message by the image reader
     except (UnidentifiedImageError, OSError):
@@ -72,7 +74,7 @@ def kind(path: str) -> str:
     except av.FFmpegError:
         pass
     raise InputError(
-        f"{name(path)} is not a supported image or video; use PNG, JPEG, WebP, EXR, HDR, MP4, MOV or WebM."
+        f"{name(path)} is not a supported image or video; use PNG, JPEG, WebP, GIF, EXR, HDR, MP4, MOV or WebM."
     )
 
 

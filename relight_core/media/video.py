@@ -1,10 +1,12 @@
 """Videos: metadata without decoding, frames decoded (resized while decoding) with their timing
-and audio, and H.264/AAC mp4 written back."""
+and audio, and H.264/AAC mp4 written back. An animated GIF, APNG or WebP is read as a video without
+sound (`animation`: Pillow composes its frames)."""
 
 from __future__ import annotations
 
 import os
 from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from fractions import Fraction
 
@@ -12,6 +14,7 @@ import av
 import numpy as np
 
 from relight_core.errors import InputError
+from relight_core.media.animation import animation_frames, is_animation, probe_animation
 from relight_core.media.base import Media, atomic, check_path, check_side, name
 from relight_core.media.image import SIZE_MULTIPLE, resize, target_size, to_uint8
 
@@ -65,6 +68,9 @@ def _fps(stream) -> float:
 def probe_video(path) -> VideoInfo:
     """Frame count, fps, displayed size and audio presence, from the header and one decoded frame."""
     path = check_path(path)
+    if is_animation(path):
+        clip = probe_animation(path)
+        return VideoInfo(clip.num_frames, clip.fps, clip.width, clip.height, False)
     with _open_video(path) as container:
         stream = container.streams.video[0]
         fps = _fps(stream)
@@ -97,6 +103,26 @@ def _decoded(container, path: str) -> Iterator[av.VideoFrame]:
                          "re-export or re-download it.") from error
 
 
+@contextmanager
+def _frames(path: str) -> Iterator[tuple[Iterator[tuple[np.ndarray, float | None]], int, bool]]:
+    """(frames, declared count, has audio) of a video: its frames as displayed, [H, W, 3] uint8 with their
+    time in seconds, decoded by PyAV (or, for an animated image, composed by Pillow); the declared count is
+    the container's exact one (0: unknown)."""
+    if is_animation(path):
+        composed = animation_frames(path)
+        try:
+            yield composed, probe_animation(path).num_frames, False
+        finally:
+            composed.close()  # its file, when the reader stopped early
+        return
+    with _open_video(path) as container:
+        stream = container.streams.video[0]
+        stream.thread_type = "AUTO"
+        rgb = ((np.rot90(frame.to_ndarray(format="rgb24"), round((frame.rotation or 0) / 90)), frame.time)
+               for frame in _decoded(container, path))
+        yield rgb, stream.frames, bool(container.streams.audio)
+
+
 def load_video(path, start: int = 0, end: int | None = None, max_frames: int | None = None, size: int | None = None,
                multiple: int = SIZE_MULTIPLE) -> Media:
     """Decode frames [start, end) (at most max_frames; long side to `size` when given, each side a multiple of
@@ -110,10 +136,8 @@ def load_video(path, start: int = 0, end: int | None = None, max_frames: int | N
     _check_budget(path, min(expected, max_frames or expected), H, W)
     limit = min(end - start if end is not None else np.inf, max_frames or np.inf)
     frames, first_time, decoded, cut_short = [], None, 0, False
-    with _open_video(path) as container:
-        declared = container.streams.video[0].frames  # exact count from the container (0: unknown)
-        container.streams.video[0].thread_type = "AUTO"
-        for index, frame in enumerate(_decoded(container, path)):
+    with _frames(path) as (decoded_frames, declared, has_audio):
+        for index, (rgb, seconds) in enumerate(decoded_frames):
             decoded = index + 1
             if index < start:
                 continue
@@ -121,10 +145,8 @@ def load_video(path, start: int = 0, end: int | None = None, max_frames: int | N
                 cut_short = True
                 break
             _check_budget(path, len(frames) + 1, H, W)  # headers can undercount frames
-            first_time = frame.time if first_time is None else first_time
-            rgb = np.rot90(frame.to_ndarray(format="rgb24"), round((frame.rotation or 0) / 90))
+            first_time = seconds if first_time is None else first_time
             frames.append(resize(rgb[None].astype(np.float32) / 255.0, H, W)[0])
-        has_audio = bool(container.streams.audio)
     # A truncated file decodes without an error but stops early: compare with the declared count.
     if declared and not cut_short and decoded < min(declared, start + limit):
         raise InputError(
@@ -161,14 +183,12 @@ def iter_video(path, start: int = 0, end: int | None = None, block: int = 16) ->
     if block < 1:
         raise ValueError(f"block must be ≥ 1, not {block}")
     pending = []
-    with _open_video(path) as container:
-        container.streams.video[0].thread_type = "AUTO"
-        for index, frame in enumerate(_decoded(container, path)):
+    with _frames(path) as (decoded_frames, _, _):
+        for index, (rgb, _) in enumerate(decoded_frames):
             if index < start:
                 continue
             if end is not None and index >= end:
                 break
-            rgb = np.rot90(frame.to_ndarray(format="rgb24"), round((frame.rotation or 0) / 90))
             pending.append(rgb.astype(np.float32) / 255.0)
             if len(pending) == block:
                 yield np.stack(pending)
