@@ -154,6 +154,30 @@ def test_upload_pick_rotate_run(browser, app_url, tmp_path):
     page.close()
 
 
+def test_an_animated_gif_plays_as_the_input_clip_and_relights_as_a_video(browser, app_url, tmp_path):
+    import numpy as np
+    from PIL import Image
+
+    still = np.asarray(Image.open(scene_image(tmp_path / "scene.png", size=(96, 64))))
+    frames = [Image.fromarray(np.roll(still, 8 * t, axis=1)) for t in range(4)]
+    gif = tmp_path / "pan.gif"
+    frames[0].save(gif, save_all=True, append_images=frames[1:], duration=100, loop=0)
+    page = open_studio(browser, app_url)
+    upload_input(page, gif)
+    page.wait_for_function("() => document.querySelector('#input-info').innerText.includes('4 frames at 10 fps')")
+    # The upload is shown as a clip the browser itself decodes (an mp4 made from the GIF's frames).
+    page.wait_for_function("() => { const v = document.querySelector('#input-video video');"
+                           " return v && v.readyState >= 1 && v.duration > 0.3; }")
+    wait_for_view(page, {"input-preview": False, "vid-relit": True})  # the clip's results have their row
+    run_and_wait(page)
+    page.wait_for_function("() => { const v = document.querySelector('#vid-relit video');"
+                           " return v && v.readyState >= 1 && v.duration > 0.3; }")
+    assert error_toasts(page) == []
+    SCREENSHOTS.mkdir(parents=True, exist_ok=True)
+    page.screenshot(path=str(SCREENSHOTS / "studio-animated-gif.png"), full_page=True)
+    page.close()
+
+
 def test_each_mode_shows_only_what_it_uses_and_names_the_button(browser, app_url, tmp_path):
     SCREENSHOTS.mkdir(parents=True, exist_ok=True)
     page = open_studio(browser, app_url, 1400, 1000)

@@ -75,7 +75,8 @@ def build_demo(studio: Studio, examples_dir: Path | None = None) -> gr.Blocks:
                 input_ok = gr.State(True)
                 input_image = gr.Image(label="Input", interactive=False, height=220, elem_id="input-preview",
                                        buttons=[])
-                input_video = gr.Video(label="Input video", interactive=False, height=220, visible=False)
+                input_video = gr.Video(label="Input video", interactive=False, height=220, visible=False,
+                                       elem_id="input-video")
                 with gr.Row(visible=False) as frame_row:
                     frame_start = FrameSlider(0, 1, value=0, step=1, label="First frame")
                     frame_end = FrameSlider(0, 1, value=0, step=1, label="Last frame")
