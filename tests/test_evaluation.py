@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import math
 
+import cv2
 import numpy as np
 import pytest
 import torch
@@ -479,3 +480,43 @@ def test_evaluate_bad_input_is_one_sentence_and_exit_2(dataset, tmp_path, capsys
     with pytest.raises(SystemExit) as exit_info:
         main(["evaluate", "--data", str(dataset), "--steps-list", "5,x", "--out", str(tmp_path)])
     assert exit_info.value.code == 2
+
+
+def _shadowed(shadow_x: int, depth: float = 0.25, size: int = 32) -> np.ndarray:
+    """Display values of a textured grey ground whose 8-px-wide cast shadow (`depth` of the light) falls at
+    column `shadow_x`."""
+    from relight_core.colour import linear_to_srgb
+
+    linear = 0.3 + 0.1 * np.random.default_rng(3).random((size, size, 1)) * np.ones(3)
+    linear[8:24, shadow_x:shadow_x + 8] *= depth
+    return linear_to_srgb(linear)
+
+
+def test_light_follow_scores_a_moving_shadow_and_an_albedo_that_keeps_the_shading():
+    from relight_core.evaluation import light_follow as lf
+
+    truth_a, truth_b, mask = _shadowed(4), _shadowed(20), np.ones((32, 32))
+    # A result that changes exactly as the truth does follows it fully, in the detail too, all the way.
+    assert lf.change_follow(truth_a, truth_b, truth_a, truth_b, mask) == pytest.approx(1.0)
+    assert lf.change_follow(truth_a, truth_b, truth_a, truth_b, mask, sigma=3) == pytest.approx(1.0)
+    assert lf.change_reach(truth_a, truth_b, truth_a, truth_b, mask) == pytest.approx(1.0)
+    assert lf.shadow_agreement(truth_a, truth_b, truth_a, truth_b, mask) == 1.0
+    # A model that ignores the light: no change, nothing followed; the shadow moved the wrong way: all disagree.
+    assert lf.change_follow(truth_a, truth_b, truth_a, truth_a, mask) == 0.0
+    assert lf.change_reach(truth_a, truth_b, truth_a, truth_a, mask) == pytest.approx(0.0)
+    assert lf.shadow_agreement(truth_a, truth_b, truth_b, truth_a, mask) == 0.0
+    assert lf.shadow_agreement(truth_a, truth_a, truth_a, truth_b, mask) is None  # the truth does not change
+    # Shadows half as deep in log luminance (half the light, not a quarter): reach 0.5, still fully correlated.
+    soft_a, soft_b = _shadowed(4, 0.5), _shadowed(20, 0.5)
+    assert lf.change_reach(truth_a, truth_b, soft_a, soft_b, mask) == pytest.approx(0.5, abs=0.02)
+    assert lf.change_follow(truth_a, truth_b, soft_a, soft_b, mask) == pytest.approx(1.0)
+    # A smooth wash where the shadows are: correlated as a whole, barely in the detail (no sharp edge moved).
+    blur = lambda x: cv2.GaussianBlur(x.astype(np.float32), (0, 0), 8).astype(np.float64)  # noqa: E731
+    wash_a, wash_b = blur(truth_a), blur(truth_b)
+    whole = lf.change_follow(truth_a, truth_b, wash_a, wash_b, mask)  # measured 0.61, in the detail 0.22
+    assert whole > 0.5 and lf.change_follow(truth_a, truth_b, wash_a, wash_b, mask, sigma=3) < whole / 2
+    # The albedo: the input copied keeps all its shading, the true albedo (at any scale) none.
+    albedo = 0.6 + 0.1 * np.random.default_rng(4).random((32, 32, 1)) * np.ones(3)
+    source = albedo * _shadowed(10)  # the albedo under a light with a shadow in it
+    assert lf.albedo_shading(source, albedo, source, mask) == pytest.approx(1.0)
+    assert lf.albedo_shading(albedo * 0.7, albedo, source, mask) == pytest.approx(0.0, abs=0.02)

@@ -1,0 +1,123 @@
+"""Does a result follow the light where it matters — do shadows move when the probe turns, and does the albedo
+lose the input's shadows? Issue 7 asks for both "visibly"; these put a number on them (runs/shadow-follow/).
+
+A scene is rendered under its own probe (the input) and under one probe turned to several world yaws (the
+targets); the model relights the input under each. Between two yaws the truth brightens here and darkens there
+(a cast shadow leaves, a highlight arrives); the result should change in the same places:
+
+* `change_follow`: the Pearson correlation, over the mask, of the result's log-luminance change
+  log(out_a / out_b) with the truth's log(target_a / target_b): 1 when it changes where the truth does, 0 for a
+  result that does not change (a model that ignores the light). With `sigma`, both changes less their Gaussian
+  blur first: the sharp part of the change (a cast shadow's edge), which no smooth gain can make;
+* `change_reach`: the regression slope of the result's change on the truth's (1: the whole change, 0: none);
+* `shadow_agreement`: on the pixels whose truth changes by more than a factor 1.5, the fraction whose result
+  changes the same way (0.5 by chance);
+* `albedo_shading`: the regression slope, over the mask, of log(albedo / true albedo) on the input's shading
+  log(input / true albedo) — 1 when the albedo keeps the input's shading and shadows (the input copied), 0 when
+  none of it is left. Scale-free, as the protocol's per-channel fit is: a constant factor moves only the mean.
+
+Images are display values in [0, 1] ([H,W,3]); luminance is taken of the linear values.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import cv2
+import numpy as np
+
+from relight_core.colour import linear_to_srgb, srgb_to_linear
+
+EPS = 1e-3          # linear luminance added before the log: black pixels stay finite
+STRONG = np.log(1.5)  # a change by more than this factor counts for `shadow_agreement`
+
+
+def log_luminance(srgb: np.ndarray) -> np.ndarray:
+    """log(Y + EPS) of display values [..., 3] (Rec. 709 luminance of the linear values)."""
+    linear = srgb_to_linear(np.clip(np.asarray(srgb, np.float64), 0, 1))
+    return np.log(linear @ np.array([0.2126, 0.7152, 0.0722]) + EPS)
+
+
+def _change(a: np.ndarray, b: np.ndarray, sigma: float | None) -> np.ndarray:
+    change = log_luminance(a) - log_luminance(b)
+    if sigma:
+        change = change - cv2.GaussianBlur(change.astype(np.float32), (0, 0), sigma).astype(np.float64)
+    return change
+
+
+def _correlation(x: np.ndarray, y: np.ndarray) -> float:
+    x, y = x - x.mean(), y - y.mean()
+    denominator = np.sqrt((x * x).sum() * (y * y).sum())
+    return float((x * y).sum() / denominator) if denominator > 1e-12 else 0.0
+
+
+def _slope(y: np.ndarray, x: np.ndarray) -> float:
+    x, y = x - x.mean(), y - y.mean()
+    return float((x * y).sum() / max((x * x).sum(), 1e-12))
+
+
+def change_follow(truth_a, truth_b, out_a, out_b, mask, sigma: float | None = None) -> float:
+    """Correlation of the result's change between two lights with the truth's, over the mask (see above)."""
+    m = np.asarray(mask) > 0.5
+    return _correlation(_change(truth_a, truth_b, sigma)[m], _change(out_a, out_b, sigma)[m])
+
+
+def change_reach(truth_a, truth_b, out_a, out_b, mask) -> float:
+    """How much of the truth's change the result makes: the slope of its change on the truth's."""
+    m = np.asarray(mask) > 0.5
+    return _slope(_change(out_a, out_b, None)[m], _change(truth_a, truth_b, None)[m])
+
+
+def shadow_agreement(truth_a, truth_b, out_a, out_b, mask, least: int = 20) -> float | None:
+    """Of the mask pixels whose truth changes by more than a factor 1.5, the fraction whose result changes
+    the same way; None when fewer than `least` pixels change that much."""
+    m = np.asarray(mask) > 0.5
+    truth, made = _change(truth_a, truth_b, None)[m], _change(out_a, out_b, None)[m]
+    strong = np.abs(truth) > STRONG
+    if strong.sum() < least:
+        return None
+    return float((np.sign(made[strong]) == np.sign(truth[strong])).mean())
+
+
+def albedo_shading(albedo, true_albedo, source, mask) -> float:
+    """How much of the input's shading the albedo keeps: 1 all of it (the input copied), 0 none."""
+    m = np.asarray(mask) > 0.5
+    shading = (log_luminance(source) - log_luminance(true_albedo))[m]
+    return _slope((log_luminance(albedo) - log_luminance(true_albedo))[m], shading)
+
+
+@dataclasses.dataclass
+class TurnedScene:
+    """A scene under its own first probe (`source`) and under one probe at several world yaws."""
+
+    source: np.ndarray          # [H,W,3] display values, as the dataset's PNGs hold them
+    albedo: np.ndarray          # [H,W,3] display values
+    mask: np.ndarray            # [H,W] 1 = geometry
+    targets: list[np.ndarray]   # per yaw, [H,W,3] display values
+    probes: list[np.ndarray]    # per yaw, the camera-frame panorama the model is given
+
+
+def _display(linear: np.ndarray) -> np.ndarray:
+    return np.round(linear_to_srgb(np.clip(linear, 0, 1)) * 255) / 255
+
+
+def render_turned(spec, probe: str, yaws, size: int = 128, spp: int = 32, exposure: float = 0.7,
+                  noise_seed: int = 0) -> TurnedScene:
+    """Render `spec` (a data-engine scene, one frame) under its first probe and under `probe` (a probe source,
+    e.g. "file:sunset") at each world yaw in `yaws` (degrees), with Mitsuba; `noise_seed` changes the targets'
+    render noise only."""
+    from relight_core.data.generate import frame_seed
+    from relight_core.data.probes import ProbeChoice
+    from relight_core.data.render import SceneRenderer
+
+    seed = frame_seed(spec, 0)
+    with SceneRenderer(spec, size, spp) as renderer:
+        source = _display(renderer.render(0, 0, seed))
+        albedo, mask = renderer.render_aovs(0, seed)
+    targets, probes = [], []
+    for yaw in yaws:
+        turned = dataclasses.replace(spec, probes=(spec.probes[0], ProbeChoice(probe, 0, float(yaw), exposure)))
+        with SceneRenderer(turned, size, spp) as renderer:
+            targets.append(_display(renderer.render(0, 1, seed + noise_seed)))
+            probes.append(renderer.camera_probe(0, 1))
+    return TurnedScene(source, _display(albedo), mask, targets, probes)
