@@ -107,11 +107,11 @@ def _decoded(container, path: str) -> Iterator[av.VideoFrame]:
 def _frames(path: str) -> Iterator[tuple[Iterator[tuple[np.ndarray, float | None]], int, bool]]:
     """(frames, declared count, has audio) of a video: its frames as displayed, [H, W, 3] uint8 with their
     time in seconds, decoded by PyAV (or, for an animated image, composed by Pillow); the declared count is
-    the container's exact one (0: unknown)."""
+    the container's exact one (0: unknown, or an animation)."""
     if is_animation(path):
-        composed = animation_frames(path)
+        composed = animation_frames(path)  # Pillow names a cut-short animation itself: no count to check
         try:
-            yield composed, probe_animation(path).num_frames, False
+            yield composed, 0, False
         finally:
             composed.close()  # its file, when the reader stopped early
         return
