@@ -344,10 +344,14 @@ def test_evaluate_end_to_end_on_the_tiny_preset(dataset, tmp_path, capsys):
     out = tmp_path / "eval"
     assert main(["evaluate", "--data", str(dataset), "--model", "tiny", "--steps", "1", "--limit", "2",
                  "--train-items", "1", "--sigma-items", "1", "--sigma-steps", "2", "--steps-list", "1,2",
-                 "--eval-size", "96", "--out", str(out)]) == 0
+                 "--eval-size", "96", "--follow-scenes", "1", "--out", str(out)]) == 0
     results = json.loads((out / "metrics.json").read_text())
     test = results["test"]
     assert test["items"] == 2 and results["train"]["items"] == 1
+    follow = results["light_follow"]
+    assert follow["scenes"] == 1 and follow["size"] == 64 and follow["yaws"] == [0.0, 90.0, 180.0, 270.0]
+    assert 0.5 < follow["summary"]["follow_ceiling"] <= 1 and -1 <= follow["summary"]["follow"] <= 1
+    assert follow["summary"]["follow"] == pytest.approx(follow["per_scene"][0]["follow"])
     assert results["model"]["steps"] == 1 and results["data"]["measured_size"] == [64, 64]   # tiny works at 64 px
     # The floor is the input scored as the result, computed here independently.
     items = load_items(dataset, "test", count=2)
@@ -388,7 +392,8 @@ def test_evaluate_end_to_end_on_the_tiny_preset(dataset, tmp_path, capsys):
         assert f"| {255 * test['model']['relit']['temporal']:.2f} | {255 * test['model']['relit']['flicker']:.2f} |" \
             in report
     for heading in ("| model |", "floor: input returned unchanged", "ceiling: tokenizer", "Probe-following margin",
-                    "Train-set reproduction", "Steps vs quality", "Denoiser error per σ", "Full-resolution output"):
+                    "Train-set reproduction", "Steps vs quality", "Denoiser error per σ", "Full-resolution output",
+                    "Following a turning light"):
         assert heading in report
     from PIL import Image
     grids = sorted(p.name for p in (out / "grids").iterdir())

@@ -48,6 +48,10 @@ def add_evaluation_commands(subparsers) -> None:
     p.add_argument("--eval-size", type=positive_int, default=None,
                    help="also measure full-resolution output at this long side: plain resize vs guided ratio")
     p.add_argument("--no-margin", action="store_true", help="skip the probe-following margin (one run per item)")
+    p.add_argument("--follow-scenes", type=_count, default=0, metavar="N",
+                   help="also render N held-out test scenes under the sunset probe turned to 4 yaws and score "
+                        "how the results follow it and how much shading the albedo keeps (light_follow.py; "
+                        "needs Mitsuba, ~15 s a scene at 128 px)")
     p.add_argument("--no-grids", action="store_true", help="write no image grids")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--ensemble", type=int_range(1, MAX_ENSEMBLE, "ensemble"), default=None,
@@ -67,7 +71,8 @@ def _evaluate(args) -> int:
         data=args.data, out=out, split=args.split, model=args.model, limit=args.limit,
         train_items=args.train_items, sigma_items=args.sigma_items, sigma_steps=args.sigma_steps,
         steps_list=args.steps_list,
-        size=args.size, eval_size=args.eval_size, margin=not args.no_margin, grids=not args.no_grids, device=args.device,
+        size=args.size, eval_size=args.eval_size, margin=not args.no_margin, follow_scenes=args.follow_scenes,
+        grids=not args.no_grids, device=args.device,
         precision=args.precision,
         run=RunOptions(steps=args.steps, sampler=args.sampler, guidance=args.guidance, seed=args.seed,
                        ensemble=args.ensemble),

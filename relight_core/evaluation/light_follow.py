@@ -22,6 +22,8 @@ Images are display values in [0, 1] ([H,W,3]); luminance is taken of the linear 
 from __future__ import annotations
 
 import dataclasses
+from itertools import combinations
+from typing import Callable
 
 import cv2
 import numpy as np
@@ -30,6 +32,11 @@ from relight_core.colour import linear_to_srgb, srgb_to_linear
 
 EPS = 1e-3          # linear luminance added before the log: black pixels stay finite
 STRONG = np.log(1.5)  # a change by more than this factor counts for `shadow_agreement`
+PROBE = "file:sunset"  # held out from training: a low sun, long hard shadows
+YAWS = (0.0, 90.0, 180.0, 270.0)
+DETAIL_SIGMA = 3.0
+KEYS = ("follow", "follow_ceiling", "follow_detail", "follow_detail_ceiling", "reach", "shadow_agreement",
+        "albedo_shading")
 
 
 def log_luminance(srgb: np.ndarray) -> np.ndarray:
@@ -121,3 +128,53 @@ def render_turned(spec, probe: str, yaws, size: int = 128, spp: int = 32, exposu
             targets.append(_display(renderer.render(0, 1, seed + noise_seed)))
             probes.append(renderer.camera_probe(0, 1))
     return TurnedScene(source, _display(albedo), mask, targets, probes)
+
+
+def score_scene(relighter, spec, options, probe: str = PROBE, yaws=YAWS, size: int = 128, spp: int = 32
+                ) -> tuple[dict, dict]:
+    """Every measure above for one data-engine scene relit under `probe` at each of `yaws` (means over the pairs
+    of yaws; the ceilings from a second render of the targets with other noise), and the images:
+    (scores, {"scene", "relit", "albedo"})."""
+    from relight_core.evaluation.harness import relight
+
+    scene = render_turned(spec, probe, yaws, size, spp)
+    again = render_turned(spec, probe, yaws, size, spp, noise_seed=1).targets
+    results = [relight(relighter, scene.source[None], light[None], options) for light in scene.probes]
+    relit, albedos = [r[0][0] for r in results], [r[1][0] for r in results]
+    pairs = list(combinations(range(len(yaws)), 2))
+    t, m = scene.targets, scene.mask
+    scores = {
+        "follow": [change_follow(t[a], t[b], relit[a], relit[b], m) for a, b in pairs],
+        "follow_ceiling": [change_follow(t[a], t[b], again[a], again[b], m) for a, b in pairs],
+        "follow_detail": [change_follow(t[a], t[b], relit[a], relit[b], m, DETAIL_SIGMA) for a, b in pairs],
+        "follow_detail_ceiling": [change_follow(t[a], t[b], again[a], again[b], m, DETAIL_SIGMA) for a, b in pairs],
+        "reach": [change_reach(t[a], t[b], relit[a], relit[b], m) for a, b in pairs],
+        "shadow_agreement": [s for a, b in pairs
+                             if (s := shadow_agreement(t[a], t[b], relit[a], relit[b], m)) is not None],
+        "albedo_shading": [albedo_shading(albedo, scene.albedo, scene.source, m) for albedo in albedos],
+    }
+    row = {key: float(np.mean(values)) if values else None for key, values in scores.items()}
+    return row, {"scene": scene, "relit": relit, "albedo": albedos}
+
+
+def summary(rows: list[dict]) -> dict:
+    """The mean of each measure over the scenes that have it."""
+    return {key: float(np.mean(values)) if (values := [r[key] for r in rows if r[key] is not None]) else None
+            for key in KEYS}
+
+
+def measure(relighter, scenes: int, options, size: int = 128, probe: str = PROBE, yaws=YAWS, spp: int = 32,
+            log: Callable[[str], None] | None = None) -> dict:
+    """The first `scenes` held-out test scenes (data-engine seed 0) scored by `score_scene` at `size` px:
+    {"scenes", "probe", "yaws", "size", "spp", "summary", "per_scene"}. Needs Mitsuba."""
+    from relight_core.data.scenes import sample_scene
+
+    rows = []
+    for index in range(scenes):
+        row, _ = score_scene(relighter, sample_scene(0, "test", index, 1), options, probe, yaws, size, spp)
+        rows.append({"scene": index, **row})
+        if log:
+            log(f"  light follow [{index + 1}/{scenes}]: follow {row['follow']:.3f} (ceiling "
+                f"{row['follow_ceiling']:.3f}), albedo shading {row['albedo_shading']:.3f}")
+    return {"scenes": scenes, "probe": probe, "yaws": list(yaws), "size": size, "spp": spp,
+            "summary": summary(rows), "per_scene": rows}

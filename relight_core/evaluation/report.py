@@ -147,6 +147,26 @@ def markdown(results: dict) -> str:
             for method, label in (("plain", "plain resize"), ("guided", "guided ratio upsampling")):
                 lines.append(f"| {source}, {label} | {_pair(full[source]['relit'][method])} | "
                              f"{_pair(full[source]['albedo'][method])} |")
+    follow = results.get("light_follow")
+    if follow:
+        s = follow["summary"]
+
+        def g(key):
+            return "–" if s[key] is None else f"{s[key]:.3f}"
+
+        lines += ["", f"## Following a turning light ({follow['scenes']} held-out scenes rendered here)", "",
+                  f"Each scene's input (under its own probe) relit under {follow['probe']} at world yaws "
+                  f"{', '.join(f'{y:g}°' for y in follow['yaws'])}, against Mitsuba renders ({follow['size']} px, "
+                  f"{follow['spp']} spp); every pair of yaws: the correlation of the result's log-luminance change "
+                  "with the truth's (follow; its detail: less a σ 3 px blur), the slope of one on the other (reach), "
+                  "the share of pixels whose light changes 1.5× or more that change the same way (agreement), and "
+                  "how much of the input's shading the albedo keeps (1: all, the input copied; 0: none). Ceilings: "
+                  "the truth against a second render with other noise (relight_core/evaluation/light_follow.py).", "",
+                  "| | follow | follow, detail | reach | shadow agreement | albedo shading |", "|---|---|---|---|---|---|",
+                  f"| model | {g('follow')} | {g('follow_detail')} | {g('reach')} | {g('shadow_agreement')} | "
+                  f"{g('albedo_shading')} |",
+                  f"| ceiling | {g('follow_ceiling')} | {g('follow_detail_ceiling')} | 1 | 1 | 0 |",
+                  "| input copied | 0 | 0 | 0 | – | 1 |"]
     lines += ["", "## Per item", "", "| item | relit PSNR | floor | ceiling | margin | albedo PSNR | floor | ceiling "
               "| albedo ΔE2000 |", "|---|---|---|---|---|---|---|---|---|"]
     for r, split in [(r, "") for r in test["per_item"]] + [(r, " (train)") for r in train.get("per_item") or []]:

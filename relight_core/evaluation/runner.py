@@ -12,7 +12,7 @@ from typing import Callable
 import numpy as np
 
 from relight_core.errors import InputError
-from relight_core.evaluation import report
+from relight_core.evaluation import light_follow, report
 from relight_core.evaluation.harness import (
     EvalItem,
     RunOptions,
@@ -44,6 +44,7 @@ class EvalConfig:
     size: int | None = None             # measure at this long side (None: the model's working size)
     eval_size: int | None = None        # also measure full-resolution output at this long side
     margin: bool = True                 # the probe-following margin (one more model run per item)
+    follow_scenes: int = 0              # held-out scenes rendered here under a turning sun (light_follow.py)
     grids: bool = True
     device: str | None = None
     precision: str | None = None        # None: the model's (normally auto)
@@ -174,6 +175,11 @@ def run_evaluation(config: EvalConfig, log: Callable[[str], None] = _log) -> dic
         fr = results["full_resolution"]
         log(f"  full resolution {config.eval_size}: relit plain {fr['model']['relit']['plain']['psnr']:.2f} dB, "
             f"guided {fr['model']['relit']['guided']['psnr']:.2f} dB")
+    if config.follow_scenes:
+        results["light_follow"] = light_follow.measure(relighter, config.follow_scenes, options, measured, log=log)
+        log(f"  light follow on {config.follow_scenes} scenes: follow "
+            f"{results['light_follow']['summary']['follow']:.3f}, albedo shading "
+            f"{results['light_follow']['summary']['albedo_shading']:.3f}")
     results["seconds"] = time.perf_counter() - started
     (out / "metrics.json").write_text(json.dumps(results, indent=1))
     (out / "metrics.md").write_text(report.markdown(results))
