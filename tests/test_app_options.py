@@ -146,3 +146,25 @@ def test_the_studio_brings_a_video_too_long_to_hold_back_at_its_own_size(tmp_pat
                     "stills": [media.load_media(latest[k]).frames.shape for k in (1, 2, 3)]}
     assert seen["input"].shape == seen["relit"].shape == (12, 32, 48, 3)
     assert seen["stills"] == [(1, 32, 48, 3)] * 3
+
+
+def test_an_upload_is_a_clip_by_its_content_and_its_name_must_agree(tmp_path):
+    import numpy as np
+    from PIL import Image
+
+    from tests.factory import make_mp4
+    from ui.inputs import is_clip, is_video
+
+    frames = [Image.fromarray(np.full((8, 8, 3), 60 * k, np.uint8)) for k in range(3)]
+    frames[0].save(tmp_path / "anim.gif", save_all=True, append_images=frames[1:], duration=100)
+    frames[0].save(tmp_path / "anim.png", save_all=True, append_images=frames[1:], duration=100)  # APNG
+    frames[0].save(tmp_path / "still.gif")
+    assert is_video(tmp_path / "anim.gif") and is_video(tmp_path / "anim.png")
+    assert not is_video(tmp_path / "still.gif") and not is_clip(tmp_path / "still.gif")
+    # A real video under an image's name (even one an animation could have) is still named in one sentence.
+    make_mp4(tmp_path / "clip.mp4")
+    for name in ("clip.png", "clip.gif"):
+        (tmp_path / name).write_bytes((tmp_path / "clip.mp4").read_bytes())
+        with pytest.raises(InputError, match="is a video named like an image"):
+            is_video(tmp_path / name)
+        assert not is_clip(tmp_path / name)

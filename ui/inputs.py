@@ -10,6 +10,7 @@ import numpy as np
 
 from relight_core import media
 from relight_core.errors import InputError
+from relight_core.media.animation import is_animation
 
 VIDEO_SUFFIXES = (".mp4", ".mov", ".webm", ".mkv", ".avi", ".m4v")
 ANIMATION_SUFFIXES = (".gif", ".png", ".apng", ".webp")  # a still or, by its content, a clip (media.animation)
@@ -51,7 +52,7 @@ def is_video(path) -> bool:
     suffix = Path(path).suffix.lower()
     named_video = suffix in VIDEO_SUFFIXES
     if not named_video and media.media_kind(path) == "video":
-        if suffix in ANIMATION_SUFFIXES:
+        if suffix in ANIMATION_SUFFIXES and is_animation(path):
             return True
         raise InputError(f"{Path(path).name} is a video named like an image; give it its video extension "
                          "(.mp4, .mov, .webm) and upload it again.")

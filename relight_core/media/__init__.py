@@ -1,16 +1,17 @@
 """Media I/O: images and videos in, frames `float32 [T, H, W, 3]` in [0, 1] out; mp4/png/exr back.
 
 Formats are detected by content, never by extension: OpenEXR / Radiance magic bytes, then
-anything Pillow can open (PNG, JPEG, WebP, ...; an animated GIF, PNG or WebP is a video, its frames
-composed by Pillow: `animation`), then anything PyAV can demux with a video stream. EXR/HDR images are shown with the plain display
-transform `srgb(clamp(x, 0, 1))` (exposure 0, linear 1.0 = display white). Alpha is composited
-over white, as the released inference does (`bg_color = (1, 1, 1)`). Every writer writes a
-temporary file next to the target and renames it at the end, so a failure leaves nothing
-half-written.
+anything Pillow can open (PNG, JPEG, WebP, ...; an animated GIF, PNG or WebP is a video, its
+frames composed by Pillow: `animation`), then anything PyAV can demux with a video stream.
+EXR/HDR images are shown with the plain display transform `srgb(clamp(x, 0, 1))` (exposure 0,
+linear 1.0 = display white). Alpha is composited over white, as the released inference does
+(`bg_color = (1, 1, 1)`). Every writer writes a temporary file next to the target and renames it
+at the end, so a failure leaves nothing half-written.
 
 One module per kind of file: `image` (Pillow/OpenCV pictures, resizing), `video` (PyAV; animated
-images through `animation`, Pillow), `hdr` (the one OpenEXR/Radiance reader, also used for light probes and the dataset's probe
-frames); `base` holds what they share. Every public name is importable from `relight_core.media`.
+images through `animation`, Pillow), `hdr` (the one OpenEXR/Radiance reader, also used for light
+probes and the dataset's probe frames); `base` holds what they share. Every public name is
+importable from `relight_core.media`.
 """
 
 from relight_core.colour import linear_to_srgb, srgb_to_linear
