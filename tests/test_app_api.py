@@ -83,7 +83,7 @@ def test_an_animated_gif_is_relit_as_a_clip_at_its_own_rate(studio):
     gif = tmp / "pan.gif"
     frames[0].save(gif, save_all=True, append_images=frames[1:], duration=80, loop=0)
     shown = [plain(v) for v in client.predict(handle_file(str(gif)), api_name="/inspect_input")]
-    assert "5 frames at 12.5 fps" in shown[-1] and shown[-3:-1] == [0, 4]
+    assert shown[-1].startswith("Animation: 64×48, 5 frames at 12.5 fps") and shown[-3:-1] == [0, 4]
     preview = shown[1]["video"] if isinstance(shown[1], dict) else shown[1]
     assert Path(preview).suffix == ".mp4" and media.load_media(preview).frames.shape[0] == 5  # a browser plays it
     final = run_job(client, **relight_args(gif, frame_start=1, frame_end=4, size=64))[-1]

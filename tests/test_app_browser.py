@@ -164,7 +164,7 @@ def test_an_animated_gif_plays_as_the_input_clip_and_relights_as_a_video(browser
     frames[0].save(gif, save_all=True, append_images=frames[1:], duration=100, loop=0)
     page = open_studio(browser, app_url)
     upload_input(page, gif)
-    page.wait_for_function("() => document.querySelector('#input-info').innerText.includes('4 frames at 10 fps')")
+    page.wait_for_function("() => document.querySelector('#input-info').innerText.includes('Animation: 96×64, 4 frames at 10 fps')")
     # The upload is shown as a clip the browser itself decodes (an mp4 made from the GIF's frames).
     page.wait_for_function("() => { const v = document.querySelector('#input-video video');"
                            " return v && v.readyState >= 1 && v.duration > 0.3; }")

@@ -112,10 +112,11 @@ class Studio:
                     raise InputError(f"{Path(path).name} has only {info.num_frames} frame; upload it as an "
                                      "image (PNG or JPEG) or upload a longer video.")
                 last = info.num_frames - 1
-                text = (f"Video: {info.width}×{info.height}, {info.num_frames} frames at {info.fps:.3g} fps"
-                        f"{', with audio' if info.has_audio else ''}.")
+                animation = Path(path).suffix.lower() in ANIMATION_SUFFIXES  # an animated GIF, APNG or WebP
+                text = (f"{'Animation' if animation else 'Video'}: {info.width}×{info.height}, {info.num_frames} "
+                        f"frames at {info.fps:.3g} fps{', with audio' if info.has_audio else ''}.")
                 shown = path
-                if Path(path).suffix.lower() in ANIMATION_SUFFIXES:  # a GIF, APNG or WebP: browsers play an mp4
+                if animation:  # browsers play an mp4 of it
                     clip = media.load_video(path, size=None if max(info.width, info.height) <= PREVIEW_SIDE
                                             else PREVIEW_SIDE)
                     shown = str(self._job_dir("inputs") / "input.mp4")
