@@ -28,7 +28,8 @@ from typing import Callable
 import cv2
 import numpy as np
 
-from relight_core.colour import linear_to_srgb, srgb_to_linear
+from relight_core.colour import linear_to_srgb, luminance, srgb_to_linear
+from relight_core.media.image import to_uint8
 
 EPS = 1e-3          # linear luminance added before the log: black pixels stay finite
 STRONG = np.log(1.5)  # a change by more than this factor counts for `shadow_agreement`
@@ -41,8 +42,7 @@ KEYS = ("follow", "follow_ceiling", "follow_detail", "follow_detail_ceiling", "r
 
 def log_luminance(srgb: np.ndarray) -> np.ndarray:
     """log(Y + EPS) of display values [..., 3] (Rec. 709 luminance of the linear values)."""
-    linear = srgb_to_linear(np.clip(np.asarray(srgb, np.float64), 0, 1))
-    return np.log(linear @ np.array([0.2126, 0.7152, 0.0722]) + EPS)
+    return np.log(luminance(srgb_to_linear(np.clip(np.asarray(srgb, np.float64), 0, 1))) + EPS)
 
 
 def _change(a: np.ndarray, b: np.ndarray, sigma: float | None) -> np.ndarray:
@@ -102,17 +102,18 @@ class TurnedScene:
     mask: np.ndarray            # [H,W] 1 = geometry
     targets: list[np.ndarray]   # per yaw, [H,W,3] display values
     probes: list[np.ndarray]    # per yaw, the camera-frame panorama the model is given
+    again: list[np.ndarray]     # per yaw, the target rendered once more with other noise (`again=True`), or []
 
 
 def _display(linear: np.ndarray) -> np.ndarray:
-    return np.round(linear_to_srgb(np.clip(linear, 0, 1)) * 255) / 255
+    return to_uint8(linear_to_srgb(linear)) / 255.0  # as the dataset's 8-bit PNGs hold it
 
 
 def render_turned(spec, probe: str, yaws, size: int = 128, spp: int = 32, exposure: float = 0.7,
-                  noise_seed: int = 0) -> TurnedScene:
+                  again: bool = False) -> TurnedScene:
     """Render `spec` (a data-engine scene, one frame) under its first probe and under `probe` (a probe source,
-    e.g. "file:sunset") at each world yaw in `yaws` (degrees), with Mitsuba; `noise_seed` changes the targets'
-    render noise only."""
+    e.g. "file:sunset") at each world yaw in `yaws` (degrees), with Mitsuba; `again` renders each target a
+    second time with other noise (the ceilings)."""
     from relight_core.data.generate import frame_seed
     from relight_core.data.probes import ProbeChoice
     from relight_core.data.render import SceneRenderer
@@ -121,13 +122,15 @@ def render_turned(spec, probe: str, yaws, size: int = 128, spp: int = 32, exposu
     with SceneRenderer(spec, size, spp) as renderer:
         source = _display(renderer.render(0, 0, seed))
         albedo, mask = renderer.render_aovs(0, seed)
-    targets, probes = [], []
+    targets, probes, repeats = [], [], []
     for yaw in yaws:
         turned = dataclasses.replace(spec, probes=(spec.probes[0], ProbeChoice(probe, 0, float(yaw), exposure)))
         with SceneRenderer(turned, size, spp) as renderer:
-            targets.append(_display(renderer.render(0, 1, seed + noise_seed)))
+            targets.append(_display(renderer.render(0, 1, seed)))
             probes.append(renderer.camera_probe(0, 1))
-    return TurnedScene(source, _display(albedo), mask, targets, probes)
+            if again:
+                repeats.append(_display(renderer.render(0, 1, seed + 1)))
+    return TurnedScene(source, _display(albedo), mask, targets, probes, repeats)
 
 
 def score_scene(relighter, spec, options, probe: str = PROBE, yaws=YAWS, size: int = 128, spp: int = 32
@@ -137,8 +140,8 @@ def score_scene(relighter, spec, options, probe: str = PROBE, yaws=YAWS, size: i
     (scores, {"scene", "relit", "albedo"})."""
     from relight_core.evaluation.harness import relight
 
-    scene = render_turned(spec, probe, yaws, size, spp)
-    again = render_turned(spec, probe, yaws, size, spp, noise_seed=1).targets
+    scene = render_turned(spec, probe, yaws, size, spp, again=True)
+    again = scene.again
     results = [relight(relighter, scene.source[None], light[None], options) for light in scene.probes]
     relit, albedos = [r[0][0] for r in results], [r[1][0] for r in results]
     pairs = list(combinations(range(len(yaws)), 2))

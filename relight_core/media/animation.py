@@ -12,17 +12,19 @@ import numpy as np
 from PIL import Image
 
 from relight_core.errors import InputError
-from relight_core.media.base import check_side, name
+from relight_core.media.base import check_side
+from relight_core.media.image import pillow_error, pillow_rgb, to_uint8
 
 ANIMATED_FORMATS = ("GIF", "PNG", "WEBP")
 DEFAULT_DELAY_MS = 100.0  # what browsers show a frame whose delay is 0 or 10 ms for
+DAMAGE = (Image.DecompressionBombError, OSError, ValueError, EOFError, SyntaxError)  # what Pillow raises
 
 
 def animated(image: Image.Image) -> bool:
     """Whether an open Pillow image is an animation of more than one frame (GIF, APNG, WebP)."""
     try:
         return image.format in ANIMATED_FORMATS and getattr(image, "n_frames", 1) > 1
-    except (OSError, ValueError, EOFError, SyntaxError):  # frames past a damage: the first one is the image
+    except DAMAGE:  # frames past a damage: the first one is the image
         return False
 
 
@@ -42,13 +44,6 @@ def _delay_ms(value) -> float:
     return delay if delay > 10 else DEFAULT_DELAY_MS
 
 
-def _damaged(path: str, error: Exception) -> InputError:
-    if isinstance(error, Image.DecompressionBombError):
-        return InputError(f"{name(path)} is too large to decode safely; use a smaller animation.")
-    return InputError(f"{name(path)} is damaged or truncated ({error or type(error).__name__}); "
-                      "re-export or re-download it.")
-
-
 def probe_animation(path: str) -> Animation:
     """Frame count, frame rate (1000 / the median delay in ms) and size of an animated image."""
     try:
@@ -62,10 +57,10 @@ def probe_animation(path: str) -> Animation:
                     image.load()  # WebP sets a frame's delay when it decodes the frame
                 delays.append(_delay_ms(image.info.get("duration")))
             width, height = image.size
-    except InputError:
+    except InputError:  # a ValueError too: the size check's own sentence
         raise
-    except (OSError, ValueError, EOFError, SyntaxError) as error:
-        raise _damaged(path, error) from error
+    except DAMAGE as error:
+        raise pillow_error(path, error, "animation") from error
     return Animation(count, 1000.0 / float(np.median(delays)), width, height)
 
 
@@ -77,19 +72,12 @@ def animation_frames(path: str) -> Iterator[tuple[np.ndarray, float]]:
             seconds = 0.0
             for index in range(image.n_frames):
                 image.seek(index)
-                has_alpha = image.mode in ("RGBA", "LA", "PA") or "transparency" in image.info
-                if has_alpha:
-                    values = np.asarray(image.convert("RGBA"), dtype=np.float32) / 255.0
-                    rgb = values[..., :3] * values[..., 3:] + (1.0 - values[..., 3:])
-                    frame = (rgb * 255.0 + 0.5).astype(np.uint8)
-                else:
-                    frame = np.asarray(image.convert("RGB"), dtype=np.uint8)
-                yield frame, seconds
+                yield to_uint8(pillow_rgb(image)), seconds
                 seconds += _delay_ms(image.info.get("duration")) / 1000.0
-    except InputError:
+    except InputError:  # a ValueError too: the size check's own sentence
         raise
-    except (OSError, ValueError, EOFError, SyntaxError) as error:
-        raise _damaged(path, error) from error
+    except DAMAGE as error:
+        raise pillow_error(path, error, "animation") from error
 
 
 def is_animation(path: str) -> bool:
@@ -97,7 +85,5 @@ def is_animation(path: str) -> bool:
     try:
         with Image.open(path) as image:
             return animated(image)
-    except Image.DecompressionBombError:
-        return False
-    except (OSError, ValueError, SyntaxError):
+    except DAMAGE:
         return False

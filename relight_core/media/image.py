@@ -34,6 +34,21 @@ def _png_is_16bit_colour(path: str) -> bool:
     return head[:8] == _PNG_MAGIC and head[24] == 16 and head[25] in (2, 6)
 
 
+def pillow_rgb(image: Image.Image) -> np.ndarray:
+    """An open 8-bit Pillow image (its current frame) -> float32 [H, W, 3] in [0, 1], alpha over white."""
+    has_alpha = image.mode in ("RGBA", "LA", "PA") or "transparency" in image.info
+    values = np.asarray(image.convert("RGBA" if has_alpha else "RGB"), dtype=np.float32) / 255.0
+    return _composite(values[..., :3], values[..., 3:] if has_alpha else None)
+
+
+def pillow_error(path: str, error: Exception, what: str = "image") -> InputError:
+    """The one sentence for a file Pillow could not decode: too large, or damaged or truncated."""
+    if isinstance(error, Image.DecompressionBombError):
+        return InputError(f"{name(path)} is too large to decode safely; use a smaller {what}.")
+    return InputError(f"{name(path)} is damaged or truncated ({error or type(error).__name__}); "
+                      "re-export or re-download it.")
+
+
 def _read_pillow(path: str) -> np.ndarray:
     """Any Pillow image -> float32 [H, W, 3] in [0, 1], EXIF-oriented, alpha over white."""
     try:
@@ -54,15 +69,11 @@ def _read_pillow(path: str) -> np.ndarray:
                 return np.repeat(np.clip(grey, 0, 1)[..., None], 3, axis=-1)
             if image.mode == "F":
                 return np.repeat(np.clip(np.asarray(image, np.float32), 0, 1)[..., None], 3, axis=-1)
-            has_alpha = image.mode in ("RGBA", "LA", "PA") or "transparency" in image.info
-            values = np.asarray(image.convert("RGBA" if has_alpha else "RGB"), dtype=np.float32) / 255.0
+            return pillow_rgb(image)
     except InputError:
         raise
-    except Image.DecompressionBombError as error:
-        raise InputError(f"{name(path)} is too large to decode safely; use a smaller image.") from error
-    except (OSError, ValueError, SyntaxError) as error:  # truncated or damaged data
-        raise InputError(f"{name(path)} is damaged or truncated ({error}); re-export or re-download it.") from error
-    return _composite(values[..., :3], values[..., 3:] if has_alpha else None)
+    except (Image.DecompressionBombError, OSError, ValueError, SyntaxError) as error:  # too large, damaged data
+        raise pillow_error(path, error) from error
 
 
 def _orient(rgb: np.ndarray, orientation: int) -> np.ndarray:
