@@ -30,6 +30,53 @@ RATIO_EPS = 1.0 / 255.0     # darkest input value a ratio is taken against (one 
 GUIDE_EPS = 1e-2            # guided-filter regularisation, in squared [0, 1] guide units (measured best)
 
 
+def guided_filter(guide: np.ndarray, source: np.ndarray, radius: int, eps: float) -> np.ndarray:
+    """He et al.'s guided filter of `source` [H,W,C] by a colour `guide` [H,W,3] (float32): opencv-contrib's
+    `cv2.ximgproc.guidedFilter` where this OpenCV has it, else `guided_filter_torch`, the same filter (a
+    machine with plain OpenCV, such as a GPU machine's image, computes the training's filtered frames alike)."""
+    if hasattr(cv2, "ximgproc"):
+        return cv2.ximgproc.guidedFilter(guide, source, int(radius), float(eps))
+    return guided_filter_torch(guide, source, radius, eps)
+
+
+def guided_filter_torch(guide: np.ndarray, source: np.ndarray, radius: int, eps: float) -> np.ndarray:
+    """The colour guided filter (He et al. 2013, section 3.5) as `cv2.ximgproc.guidedFilter` computes it: box
+    means over (2r+1)² windows with the border mirrored as OpenCV's BORDER_REFLECT (edge pixel repeated), the
+    guide's 3×3 covariance + eps·I inverted per pixel; float64 inside, float32 [H,W,C] out (within ~1e-7 of
+    OpenCV's)."""
+    import torch
+    import torch.nn.functional as F
+
+    r = int(radius)
+    image = torch.from_numpy(np.ascontiguousarray(guide, dtype=np.float64)).permute(2, 0, 1)[None]   # [1,3,H,W]
+    src = np.asarray(source, dtype=np.float64)
+    p = torch.from_numpy(np.ascontiguousarray(src[..., None] if src.ndim == 2 else src)).permute(2, 0, 1)[None]
+    h, w = image.shape[-2:]
+
+    def mirrored(n: int) -> torch.Tensor:
+        index = torch.arange(-r, n + r) % (2 * n)
+        return torch.where(index >= n, 2 * n - 1 - index, index)
+
+    rows, cols = mirrored(h), mirrored(w)
+
+    def box(x: torch.Tensor) -> torch.Tensor:
+        return F.avg_pool2d(x[:, :, rows][:, :, :, cols], 2 * r + 1, stride=1)
+
+    mean_i, mean_p = box(image), box(p)
+    pairs = [(i, j) for i in range(3) for j in range(3)]
+    cov = box(torch.stack([image[:, i] * image[:, j] for i, j in pairs], 1)) \
+        - torch.stack([mean_i[:, i] * mean_i[:, j] for i, j in pairs], 1)                 # [1,9,H,W]
+    inverse = torch.linalg.inv(cov.permute(0, 2, 3, 1).reshape(1, h, w, 3, 3) + eps * torch.eye(3, dtype=cov.dtype))
+    out = []
+    for c in range(p.shape[1]):
+        cross = box(image * p[:, c:c + 1]) - mean_i * mean_p[:, c:c + 1]                  # [1,3,H,W]
+        a = torch.einsum("nhwij,njhw->nihw", inverse, cross)
+        b = mean_p[:, c:c + 1] - (a * mean_i).sum(1, keepdim=True)
+        out.append((box(a) * image).sum(1, keepdim=True) + box(b))
+    result = torch.cat(out, 1)[0].permute(1, 2, 0).numpy().astype(np.float32)
+    return result[..., 0] if src.ndim == 2 else result
+
+
 def guided_ratio_upsample(full_input: np.ndarray, small_input: np.ndarray, small_output: np.ndarray,
                           radius: int | None = None, eps: float = GUIDE_EPS,
                           ratio_eps: float = RATIO_EPS) -> np.ndarray:
@@ -65,7 +112,7 @@ def guided_ratio_upsample(full_input: np.ndarray, small_input: np.ndarray, small
         ratio = cv2.resize(ratios[t], (W, H), interpolation=cv2.INTER_LINEAR)          # [H, W, 3]
         centre = np.median(ratios[t].reshape(-1, 3), axis=0).astype(np.float32)
         guide = np.ascontiguousarray(full[t])
-        detail = cv2.ximgproc.guidedFilter(guide, np.ascontiguousarray(ratio - centre), int(radius), float(eps))
+        detail = guided_filter(guide, np.ascontiguousarray(ratio - centre), radius, eps)
         out[t] = np.clip(full[t] * (detail + centre), 0.0, 1.0)
     return out[0] if single else out
 
@@ -89,7 +136,7 @@ def smooth_offset(guide: np.ndarray, output: np.ndarray, radius: int, eps: float
     out = np.empty_like(output)
     for t in range(len(guide)):
         g = np.ascontiguousarray(guide[t])
-        offset = cv2.ximgproc.guidedFilter(g, np.ascontiguousarray(output[t] - g), int(radius), float(eps))
+        offset = guided_filter(g, np.ascontiguousarray(output[t] - g), radius, eps)
         out[t] = np.clip(g + offset, 0.0, 1.0)
     return out
 

@@ -1,15 +1,17 @@
 #!/usr/bin/env bash
-# Make everything a GPU round needs on this machine's CPUs, from nothing: the rendered scenes, the packs and the
-# pieces that each fit one call to a GPU machine (docs/TRAINING.md, "A round on a GPU machine"). Start it at the
-# very beginning of a session that has a GPU (or the session before): on 2 cores the 7,022 seed-7 scenes take
-# about an hour, the test split 4 minutes. Every step is deterministic and resumes where it stopped (render-data
-# skips finished scenes; a pack or the pieces are made again only when missing), so run it again after a stop.
-#   bash scripts/prepare_gpu_round.sh                  # → ~/.cache/unirelight-studio/gpu-pieces-s7/{p1..p4,val,test}.npz + init/
+# Make everything a GPU round needs on this machine's CPUs, from nothing: the rendered scenes, the packs, the
+# pieces, and the folders of the calls that carry them to a GPU machine, each within one call's 64 MiB (docs/
+# TRAINING.md, "A whole round on a GPU machine"). Start it at the very beginning of a session that has a GPU (or
+# the session before): on 2 cores the 7,022 seed-7 scenes take about an hour, the 900 seed-8 ones for the refiners
+# ~10 minutes, the test split 4. Every step is deterministic and resumes where it stopped (render-data skips
+# finished scenes; a pack or the pieces are made again only when missing), so run it again after a stop.
+#   bash scripts/prepare_gpu_round.sh      # → ~/.cache/unirelight-studio/gpu-calls/{c1..cN, calls.md}
 #   SCENES=3000 PIECES="58 40" bash scripts/prepare_gpu_round.sh
 # Settings (environment): UNIRELIGHT_CACHE, PYTHON, SEED (7), SCENES (7022), WORKERS (nproc), VAL (128 scenes kept
-# out as val.npz), TEST_SCENES (200), PIECES (each piece's largest size, MB).
-# Then, one call at a time: carry each piece to the GPU machine (copy it into .dev/, which .git/info/exclude
-# ignores) and run scripts/gpu_round.sh with the last one (docs/TRAINING.md has the calls).
+# out as val.npz), TEST_SCENES (200), PIECES (each piece's largest size, MB), REFIT_SEED (8), REFIT_SCENES (900,
+# the last 128 of them the refiners' validation), CALL_MB (58: what a call carries besides the working tree).
+# Then follow gpu-calls/calls.md: one call at a time, the last runs scripts/gpu_whole_round.sh (the DiT, then
+# both refiners fitted again to it).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 cache=${UNIRELIGHT_CACHE:-$HOME/.cache/unirelight-studio}
@@ -23,6 +25,11 @@ pieces_dir="$cache/gpu-pieces-s$seed"
 val=${VAL:-128}
 test_scenes=${TEST_SCENES:-200}
 read -r -a pieces <<< "${PIECES:-58 58 58 40}"
+refit_seed=${REFIT_SEED:-8}
+refit_scenes=${REFIT_SCENES:-900}
+refit_data="$cache/data$refit_seed"
+refit_dir="$cache/refit-s$refit_seed"
+calls_dir="$cache/gpu-calls"
 
 echo "$(date +%H:%M:%S) test split ($test_scenes scenes) → $cache/data"
 "$python" -m relight_core render-data --out "$cache/data" --split test --scenes "$test_scenes" --frames 1 --size 128 \
@@ -45,5 +52,24 @@ if [[ ! -f "$pieces_dir/val.npz" ]]; then
   cp models/default/config.json models/default/dit.safetensors "$pieces_dir.partial/init/"
   mv "$pieces_dir.partial" "$pieces_dir"
 fi
-echo "$(date +%H:%M:%S) ready:"
-ls -l "$pieces_dir" "$pieces_dir/init"
+echo "$(date +%H:%M:%S) $refit_scenes seed-$refit_seed scenes for the refiners (no model has seen them) → $refit_data"
+"$python" -m relight_core render-data --out "$refit_data" --split train --scenes "$refit_scenes" --frames 1 --size 128 \
+  --spp 32 --seed "$refit_seed" --workers "$workers"
+if [[ ! -f "$refit_dir/val.npz" ]]; then
+  rm -rf "$refit_dir.partial"
+  "$python" -m relight_core.training.pack --data "$refit_data" --split train --out "$refit_dir.partial/all.npz"
+  "$python" -m relight_core.training.pieces --pack "$refit_dir.partial/all.npz" --val 128 --pieces 58 \
+    --out "$refit_dir.partial/cut"
+  mkdir -p "$refit_dir"
+  mv "$refit_dir.partial/cut/p1.npz" "$refit_dir/refit.npz"
+  mv "$refit_dir.partial/cut/val.npz" "$refit_dir/val.npz"
+  rm -rf "$refit_dir.partial"
+fi
+echo "$(date +%H:%M:%S) the calls' folders → $calls_dir"
+files=()
+for piece in "$pieces_dir"/p*.npz; do files+=("packs/$(basename "$piece")=$piece"); done
+files+=("aux/val.npz=$pieces_dir/val.npz" "aux/test.npz=$pieces_dir/test.npz" "aux/model=models/default"
+        "refit/refit.npz=$refit_dir/refit.npz" "aux/refit-val.npz=$refit_dir/val.npz")
+"$python" -m relight_core.training.calls "${files[@]}" --limit "${CALL_MB:-58}" --out "$calls_dir" \
+  --run 'OUT=$OUT COMPILE=1 bash scripts/gpu_whole_round.sh DIT_MINUTES REFIT_MINUTES'
+echo "$(date +%H:%M:%S) ready: $calls_dir/calls.md"

@@ -7,6 +7,9 @@ import os
 import subprocess
 import sys
 
+import numpy as np
+import pytest
+
 from relight_core.checkpoint import REPO_ROOT, load_model
 from relight_core.training.fast import merge_shards
 from relight_core.training.pack import write_pack
@@ -39,3 +42,60 @@ def test_a_gpu_round_runs_its_learning_rates_and_hands_back_the_pick(tmp_path):
     assert set(picked["scores"]) == {*runs, "mean", "mean with init", "init"} and picked["best"] in picked["scores"]
     spec, dit, _ = load_model(merge_shards(out, out / "config.json", tmp_path / "picked"))
     assert spec.residual and spec.notes["picked"]["from"] == picked["best"]
+
+
+def test_a_whole_round_is_planned_into_calls_carried_and_hands_back_a_model_with_its_refiners_fitted_again(tmp_path):
+    """training.calls cuts the files into calls within a size; copied in turn into the machine's folder, the last
+    runs scripts/gpu_whole_round.sh: the DiT's round, then both refiners fitted again to the picked DiT (here at
+    lr 0, so the start is kept), all in ≤ 8 files; here the parts make a model folder that runs."""
+    from relight_core.pipeline import Relighter, RelightRequest
+    from relight_core.training import calls
+    from relight_core.training.assemble import assemble
+
+    root = write_pack_dataset(tmp_path / "data", scenes=9)
+    write_pack(root, "train", tmp_path / "all.npz", lighting_size=8)
+    counts = cut_pack(tmp_path / "all.npz", tmp_path / "pieces", [0.02, 0.02, 1.0], val=2)
+    assert counts["p3"] >= 1
+    refit = tmp_path / "refit"
+    refit.mkdir()
+    (tmp_path / "pieces" / "p3.npz").rename(refit / "refit.npz")     # scenes the DiT's round does not train on
+    model = REPO_ROOT / "models" / "default"
+    files = [f"packs/{p}.npz={tmp_path / 'pieces' / f'{p}.npz'}" for p in ("p1", "p2")]
+    files += [f"aux/val.npz={tmp_path / 'pieces' / 'val.npz'}", f"aux/test.npz={tmp_path / 'pieces' / 'val.npz'}",
+              f"aux/model={model}", f"refit/refit.npz={refit / 'refit.npz'}",
+              f"aux/refit-val.npz={tmp_path / 'pieces' / 'val.npz'}"]
+    planned = calls.plan_calls(files, tmp_path / "calls", 34.0, run="bash scripts/gpu_whole_round.sh 0.02 0.02")
+    sizes = [sum((tmp_path / "calls" / f"c{i}" / f).stat().st_size for f in c["files"]) / 1e6
+             for i, c in enumerate(planned, 1)]
+    assert len(planned) >= 2 and max(sizes) <= 34.0                             # the DiT's 33.5 MB alone in one
+    assert sorted(f for c in planned for f in c["files"]) == sorted(
+        [*(f"aux/model/{f.name}" for f in model.iterdir() if f.is_file()), "packs/p1.npz", "packs/p2.npz",
+         "aux/val.npz", "aux/test.npz", "refit/refit.npz", "aux/refit-val.npz"])   # every file, once
+    plan = (tmp_path / "calls" / "calls.md").read_text()
+    assert plan.count("carry") == len(planned) and plan.rstrip().endswith("0.02 0.02`")
+    with pytest.raises(ValueError, match="more than one call's"):
+        calls.plan_calls(files, tmp_path / "calls2", 20.0)
+    machine = tmp_path / "machine"
+    machine.mkdir()
+    for number in range(1, len(planned) + 1):                                    # each call copies its folder in
+        subprocess.run(["cp", "-r", f"{tmp_path / 'calls' / f'c{number}'}/.", f"{machine}/"], check=True)
+    out = tmp_path / "out"
+    env = dict(os.environ, GPU_DIR=str(machine), OUT=str(out), DEVICE="cpu", BATCH="2", LRS="1e-4",
+               REFINE_LR="0", REFINE_BATCH="2", SAME="1", THREADS="1", VAL_EVERY="0.01", PYTHON=sys.executable,
+               OMP_NUM_THREADS="1")
+    done = subprocess.run(["bash", str(REPO_ROOT / "scripts" / "gpu_whole_round.sh"), "0.02", "0.02"], env=env,
+                          capture_output=True, text=True, timeout=900)
+    assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]
+    names = {p.name for p in out.iterdir()}
+    assert names >= {"config.json", "dit-shard-0.safetensors", "refiner.safetensors", "relit_refiner.safetensors",
+                     "round.tar.gz"} and len(names) <= 8
+    assert all(p.stat().st_size <= 16 * 2 ** 20 for p in out.iterdir())        # ≤ 16 MiB a file
+    listed = subprocess.run(["tar", "tzf", str(out / "round.tar.gz")], capture_output=True, text=True).stdout.split()
+    assert {"round/pick.json", "refit/best-refiner.json", "refit/best-relit_refiner.json"} <= set(listed)
+    folder = assemble(model, tmp_path / "new", dit=out, refiners={"refiner": out / "refiner.safetensors",
+                                                                  "relit_refiner": out / "relit_refiner.safetensors"})
+    relighter = Relighter.load(str(folder))
+    assert relighter.refiner is not None and relighter.relit_refiner is not None
+    frames = np.random.default_rng(0).random((1, 64, 64, 3)).astype(np.float32)
+    result = relighter.relight(RelightRequest(frames=frames, probe=np.ones((16, 32, 3), np.float32)))
+    assert result.relit.shape == frames.shape and np.isfinite(result.albedo).all()

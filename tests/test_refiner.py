@@ -359,6 +359,18 @@ def test_refine_trains_on_unseen_scenes_resumes_and_writes_a_model_the_relighter
     with pytest.raises(SystemExit):
         refine.main([*args[:3], str(tmp_path / "p.npz"), *args[3:]])
     assert "the --pack files hold scenes of the same name" in capsys.readouterr().err
+    # --device: the items stay in host memory and each batch goes to the device, flipped alike; a GPU asked
+    # for where there is none is one sentence.
+    flip = torch.tensor([True, False])
+    on_host = refine.model_inputs(data, [0, 1], "raw", flip)
+    moved = refine.model_inputs(data, [0, 1], "raw", flip, torch.device("cpu"))
+    for a, b in zip((*on_host[:3], on_host[3]("env"), on_host[3]("mask")), (*moved[:3], moved[3]("env"), moved[3]("mask"))):
+        assert torch.equal(a, b)
+    assert torch.equal(on_host[3]("env")[0], data["env"][0].flip(1)) and torch.equal(on_host[3]("env")[1], data["env"][1])
+    if not torch.cuda.is_available():
+        with pytest.raises(SystemExit):
+            refine.main([*args, "--device", "cuda"])
+        assert "no usable CUDA GPU" in capsys.readouterr().err
 
 
 def test_light_features_keep_the_lights_shape_and_colour_not_its_scale():
@@ -923,3 +935,91 @@ def test_a_model_folder_from_a_refiner_run_keeps_how_the_model_ran_that_slot_not
     (model / "config.json").write_text(json.dumps(config))
     written = json.loads((refine.write_model(model, run, tmp_path / "out2", best) / "config.json").read_text())
     assert written["refiner"] == SMALL.to_dict()
+
+
+def _model_folder(folder, relit_strength=0.85):
+    """A residual pixel model folder with both refiners (the relit one at a strength, as shipped)."""
+    spec, dit, _ = residual_model()
+    folder.mkdir()
+    save_file({k: v.contiguous() for k, v in dit.state_dict().items()}, folder / "dit.safetensors")
+    albedo_refiner = _randomised(Refiner(replace(SMALL, base="filtered", clips=("albedo",))), 0.05)
+    relit_refiner = _randomised(Refiner(replace(SMALL, base="filtered", clips=("relit",), lighting=True,
+                                                relit_gain=4, strength=relit_strength)), 0.05)
+    data = replace(spec, refiner=albedo_refiner.config.to_dict(), relit_refiner=relit_refiner.config.to_dict(),
+                   shift_average=2).to_json()
+    (folder / "config.json").write_text(json.dumps(data))
+    save_file(albedo_refiner.state_dict(), folder / REFINER_FILE)
+    save_file(relit_refiner.state_dict(), folder / RELIT_REFINER_FILE)
+    return dit
+
+
+def test_assemble_swaps_a_gpu_rounds_dit_or_a_refiner_into_a_model_that_keeps_how_it_runs(tmp_path, capsys):
+    from relight_core.training import assemble
+    from relight_core.training.fast import write_shards
+
+    like = tmp_path / "like"
+    _model_folder(like)
+    # A GPU round hands back shards + the DiT's own config (no refiners, no copies, its notes).
+    torch.manual_seed(5)
+    new = JointDiT(resolve_model(like)[0].dit)
+    round_dir = tmp_path / "round"
+    round_dir.mkdir()
+    assert write_shards({k: v.to(torch.bfloat16) for k, v in new.state_dict().items()}, round_dir) >= 1
+    config = json.loads((like / "config.json").read_text())
+    bare = {k: config[k] for k in ("name", "dit", "tokenizer", "size", "residual")}
+    (round_dir / "config.json").write_text(json.dumps({**bare, "notes": {"picked": {"from": "mean"}}}))
+    retrained = _randomised(Refiner(RefinerConfig.from_dict(config["relit_refiner"])), 0.02)
+    save_file(retrained.state_dict(), tmp_path / "relit.safetensors")
+    assert assemble.main(["--like", str(like), "--dit", str(round_dir), "--relit-refiner", str(tmp_path / "relit.safetensors"),
+                          "--bf16", "--out", str(tmp_path / "new")]) == 0
+    made = json.loads((tmp_path / "new" / "config.json").read_text())
+    assert made["refiner"] == config["refiner"] and made["relit_refiner"] == config["relit_refiner"]   # strength too
+    assert made["shift_average"] == 2 and made["notes"]["dit_round"] == {"picked": {"from": "mean"}}
+    stored = load_file(tmp_path / "new" / "dit.safetensors")
+    assert all(v.dtype == torch.bfloat16 and torch.equal(v, new.state_dict()[k].to(torch.bfloat16)) for k, v in stored.items())
+    spec, directory = resolve_model(tmp_path / "new")
+    relit = load_refiner(spec, directory, slot="relit_refiner")
+    assert torch.equal(relit.head.weight, retrained.head.weight.to(torch.bfloat16).float())
+    albedo = load_refiner(spec, directory)                                   # the slot not given: like's, in bf16
+    assert torch.equal(albedo.head.weight, load_file(like / REFINER_FILE)["head.weight"].to(torch.bfloat16).float())
+    assert Relighter.load(str(tmp_path / "new")).relit_refiner.config.strength == 0.85
+    # Another network, weights that do not fit the slot, a slot the model lacks: one sentence each.
+    (round_dir / "config.json").write_text(json.dumps({**bare, "dit": {**bare["dit"], "width": 64}}))
+    with pytest.raises(SystemExit):
+        assemble.main(["--like", str(like), "--dit", str(round_dir), "--out", str(tmp_path / "x")])
+    assert "is another network than" in capsys.readouterr().err
+    save_file(Refiner(replace(SMALL, widths=(4, 8, 8))).state_dict(), tmp_path / "wide.safetensors")
+    with pytest.raises(SystemExit):
+        assemble.main(["--like", str(like), "--refiner", str(tmp_path / "wide.safetensors"), "--out", str(tmp_path / "y")])
+    assert "does not load" in capsys.readouterr().err
+    del config["relit_refiner"]
+    (like / "config.json").write_text(json.dumps(config))
+    with pytest.raises(SystemExit):
+        assemble.main(["--like", str(like), "--relit-refiner", str(tmp_path / "relit.safetensors"), "--out", str(tmp_path / "z")])
+    assert "has no \"relit_refiner\"" in capsys.readouterr().err
+
+
+def test_refit_fits_a_models_own_refiner_again_from_its_config_and_weights(tmp_path, capsys):
+    model = tmp_path / "model"
+    _model_folder(model)
+    root = write_pack_dataset(tmp_path / "data", scenes=3)
+    write_pack(root, "train", tmp_path / "p.npz", lighting_size=8)
+    write_pack(root, "train", tmp_path / "val.npz", lighting_size=8, limit=1)
+    args = ["--model", str(model), "--pack", str(tmp_path / "p.npz"), "--val-pack", str(tmp_path / "val.npz"),
+            "--refit", "--slot", "relit_refiner", "--batch", "2", "--minutes", "0.02", "--val-every-minutes", "0.01",
+            "--lr", "0", "--out", str(tmp_path / "run")]
+    assert refine.main(args) == 0
+    assert "starting from the refiner in" in capsys.readouterr().out
+    best = json.loads((tmp_path / "run" / "best.json").read_text())
+    shipped = json.loads((model / "config.json").read_text())["relit_refiner"]
+    assert best["refiner"] == {k: v for k, v in shipped.items() if k != "strength"}   # its shape; training uses 1
+    # At lr 0 nothing beats the start, and the start is what is kept (step 0), not the first validation's.
+    assert best["step"] == 0 and best["val"]["relit"] == best["start"]["init"]["relit"]
+    kept, start = load_file(tmp_path / "run" / "refiner.safetensors"), load_file(model / RELIT_REFINER_FILE)
+    assert all(torch.equal(kept[k], start[k]) for k in start)
+    config = json.loads((model / "config.json").read_text())
+    del config["relit_refiner"]
+    (model / "config.json").write_text(json.dumps(config))
+    with pytest.raises(SystemExit):
+        refine.main([*args[:-1], str(tmp_path / "run2")])
+    assert "names no refiner in \"relit_refiner\"" in capsys.readouterr().err

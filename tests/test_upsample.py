@@ -104,3 +104,29 @@ def test_offset_smoothing_keeps_a_constant_offset_and_averages_blotches_away():
     assert smoothed[0][checker].mean() - smoothed[0][~checker].mean() > 0.2
     with pytest.raises(InputError, match="one size"):
         smooth_offset(guide, guide[:, :32], 2)
+
+
+def test_the_torch_guided_filter_is_opencv_contribs_and_stands_in_where_opencv_has_no_ximgproc(monkeypatch):
+    import cv2
+
+    from relight_core import upsample
+
+    rng = np.random.default_rng(1)
+    # sizes, radii (one past the image: the mirrored border repeats) and sources of one and three channels
+    for h, w, radius, channels in ((128, 128, 12, 3), (37, 53, 4, 3), (16, 16, 20, 3), (20, 30, 3, 1)):
+        guide = rng.random((h, w, 3)).astype(np.float32)
+        source = (rng.random((h, w, channels) if channels > 1 else (h, w)).astype(np.float32) - 0.5)
+        expected = cv2.ximgproc.guidedFilter(guide, source, radius, 0.01)
+        got = upsample.guided_filter_torch(guide, source, radius, 0.01)
+        assert got.shape == expected.shape and got.dtype == np.float32
+        np.testing.assert_allclose(got, expected, atol=1e-6)
+        assert np.abs(got - source).max() > 0.1                          # it did filter
+    # A plain OpenCV (a GPU machine's image) has no ximgproc: the offset filter and the ratio transfer give the same.
+    guide = rng.random((2, 32, 32, 3)).astype(np.float32)
+    output = np.clip(guide + 0.2 * rng.random((2, 32, 32, 3)).astype(np.float32), 0, 1)
+    small = guide[:, ::2, ::2]
+    with_contrib = (upsample.smooth_offset(guide, output, 4), upsample.guided_ratio_upsample(guide, small, output[:, ::2, ::2]))
+    monkeypatch.delattr(cv2, "ximgproc")
+    without = (upsample.smooth_offset(guide, output, 4), upsample.guided_ratio_upsample(guide, small, output[:, ::2, ::2]))
+    for a, b in zip(with_contrib, without):
+        np.testing.assert_allclose(a, b, atol=1e-6)

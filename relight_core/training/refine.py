@@ -19,6 +19,8 @@
    named: a refiner may correct the albedo alone, the relit frames staying the filter's); left↔right
    flips; AdamW with a warm-up; an EMA of the weights. Every `--val-every-minutes` the EMA is scored
    on the validation pack by the protocol's PSNR (evaluation.metrics) and the best one is kept.
+   `--device cuda` makes the DiT's outputs and trains on a GPU (a GPU round's last minutes, after the DiT
+   changed: scripts/gpu_refine.sh); the random draws stay on the CPU and the items in host memory.
 3. **Stop and resume.** A checkpoint (weights, EMA, optimiser, generator, step, time used) is written
    at every validation; the same command resumes from it exactly and stops when `--minutes` are used
    (a different `--lr` or `--clips` applies from there). `--init refiner.safetensors` starts a new run
@@ -30,7 +32,8 @@
 4. **The light.** With `--lighting` the refiner sees the target's camera-frame probe (the pack's
    lighting grid, `refiner.light_features`), flipped with its item and its colours permuted alike.
 
-The best refiner goes to `--out/refiner.safetensors` (scores in `--out/best.json`); `--model-dir`
+The best refiner (the `--init` one counts, at step 0) goes to `--out/refiner.safetensors` (scores in
+`--out/best.json`); `--refit` fits a model folder's own refiner again after its DiT changed; `--model-dir`
 also writes a model folder: the model's config.json, DiT and refiners with this one added in `--slot`
 ("refiner", or "relit_refiner" for a second one beside the model's).
 """
@@ -49,6 +52,7 @@ import torch
 from safetensors.torch import load_file, save_file
 
 from relight_core.checkpoint import CONFIG_FILE, DIT_FILE, load_model, resolve_model
+from relight_core.devices import resolve_device
 from relight_core.evaluation.metrics import protocol_psnr
 from relight_core.pipeline import copies_mean, copy_shifts
 from relight_core.precision import resolve_precision
@@ -78,18 +82,20 @@ def unseen_items(names: list[str], seen: list[Path], scenes: int | None, same: i
 
 @torch.no_grad()
 def dit_outputs(model: Path, pack: dict, items: list[tuple[int, int, int]], batch: int = 16,
-                log=print, copies: int | None = None) -> dict[str, np.ndarray]:
+                log=print, copies: int | None = None, device: str | torch.device = "cpu") -> dict[str, np.ndarray]:
     """The model's relit and albedo frames (uint8 [N,3,H,W]) for `items` (`unseen_items`), as `Relighter`
     decodes them: its residual gains applied, and with its `shift_average` (or `copies`) copies the mean of
     the copies run on the input rolled by half a DiT token (`pipeline.copies_mean`); an item with same = 1
-    has the scene under the target light as its input too."""
-    spec, dit, _ = load_model(model, "cpu")
+    has the scene under the target light as its input too. The DiT runs on `device` (the pack stays where
+    it is; each batch goes over), in bf16 where that device computes it faster."""
+    device = torch.device(device)
+    spec, dit, _ = load_model(model, device)
     if spec.tokenizer.get("type") != "pixel" or not spec.residual:
         raise ValueError(f"{model} is not a residual pixel-tokenizer model; the refiner is for the default model's kind")
     tokenizer = build_tokenizer(spec.tokenizer)
     token = tokenizer.spatial_factor * spec.dit.patch_spatial
     variants = [(False, shift) for shift in copy_shifts(copies or spec.shift_average, token)]
-    autocast = resolve_precision("auto", torch.device("cpu")) == torch.bfloat16
+    autocast = resolve_precision("auto", device) == torch.bfloat16
     relit, albedo = [], []
     started = time.time()
     start, batches = 0, 0
@@ -102,6 +108,7 @@ def dit_outputs(model: Path, pack: dict, items: list[tuple[int, int, int]], batc
         targets = torch.tensor([t for _, t, _ in part])
         mix = torch.ones(len(part), 2) if part[0][2] else None       # make_batch: the input under the target light
         data = make_batch(pack, tokenizer, scenes, targets, torch.zeros(len(part), dtype=torch.bool), mix)
+        data = {key: value.to(device) for key, value in data.items()}
         source = tokenizer.decode(data["input"]).float()              # [B,3,t,H,W]
         t = data["input"].shape[2]
         entries = {1: [], 2: []}
@@ -114,7 +121,7 @@ def dit_outputs(model: Path, pack: dict, items: list[tuple[int, int, int]], batc
             for clip, gain in ((1, spec.residual_gain[0]), (2, spec.residual_gain[1])):
                 frames = tokenizer.decode(x0[:, :, clip * t:(clip + 1) * t].float())[:, :, 0]
                 frames = inputs[:, :, 0] + gain * (frames - inputs[:, :, 0])  # the gain Relighter's denoiser applies
-                entries[clip].append(frames.clamp(-1, 1).permute(0, 2, 3, 1).numpy())
+                entries[clip].append(frames.clamp(-1, 1).permute(0, 2, 3, 1).cpu().numpy())
         for clip, out in ((1, relit), (2, albedo)):
             mean = torch.from_numpy(np.ascontiguousarray(copies_mean(np.stack(entries[clip]), variants, token)))
             out.append(((mean.permute(0, 3, 1, 2) + 1) * 127.5).round().to(torch.uint8).numpy())
@@ -157,7 +164,7 @@ def held_frames(path: Path, rows: list[int | None]) -> dict[str, np.ndarray] | N
 
 
 def cached_outputs(path: Path, model: Path, pack: dict, items: list[tuple[int, int, int]], log=print,
-                   copies: int | None = None) -> dict:
+                   copies: int | None = None, device: str | torch.device = "cpu") -> dict:
     """`dit_outputs` for `items`, kept in `path`: the items it holds already (by scene name, direction and
     same) are read from it, only the others are computed, and the file is rewritten with all of them in order.
     The file records how many shifted copies made them (`copies`, else the model's `shift_average`; a file
@@ -178,7 +185,7 @@ def cached_outputs(path: Path, model: Path, pack: dict, items: list[tuple[int, i
         out = held_frames(path, rows)
         log(f"{path} holds {len(items) - len(missing)} of these {len(items)} items; computing the other {len(missing)}")
     if missing:
-        fresh = dit_outputs(model, pack, [items[i] for i in missing], log=log, copies=copies)
+        fresh = dit_outputs(model, pack, [items[i] for i in missing], log=log, copies=copies, device=device)
         if out is None:
             out = fresh
         else:
@@ -247,14 +254,20 @@ def item_loss(pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor) -> t
     return torch.log(fitted + 1e-5).mean() + 0.5 * torch.log(plain + 1e-5).mean()
 
 
-def model_inputs(data: dict, index, base: str, flip: torch.Tensor | None = None):
+def model_inputs(data: dict, index, base: str, flip: torch.Tensor | None = None, device: torch.device | None = None):
     """(network input [B,9|15,H,W], relit base, albedo base) in [-1, 1] for items `index`, and `get`, which
-    reads any other of their tensors (flipped alike: images and masks along x, the probe env u → 1 − u)."""
+    reads any other of their tensors (flipped alike: images and masks along x, the probe env u → 1 − u), all
+    on `device` (None: where `data` is)."""
     def get(key):
         x = data[key][index]
-        if flip is not None:
+        if device is not None:
+            x = x.to(device, non_blocking=True)
+            flips = None if flip is None else flip.to(device)
+        else:
+            flips = flip
+        if flips is not None:
             axis = 2 if key == "env" else -1    # env [B,s,s,3]: the panorama's u axis
-            x = torch.where(flip.view(-1, *([1] * (x.dim() - 1))), x.flip(axis), x)
+            x = torch.where(flips.view(-1, *([1] * (x.dim() - 1))), x.flip(axis), x)
         return x
 
     filtered = (_signed(get("f_relit")), _signed(get("f_albedo"))) if base == "filtered" else None
@@ -273,17 +286,18 @@ def permute_colours(images: torch.Tensor, order: torch.Tensor) -> torch.Tensor:
 @torch.no_grad()
 def validate(refiner: Refiner, data: dict, autocast: bool) -> dict[str, float]:
     """The protocol's mean PSNR (relit, albedo) of the refined frames on `data`, as `Relighter` makes them
-    (a clip the refiner does not correct is scored as its base)."""
+    (a clip the refiner does not correct is scored as its base); the refiner runs on the device it is on."""
+    device = next(refiner.parameters()).device
     relit, albedo = [], []
     for start in range(0, len(data["input"]), 32):
         index = slice(start, start + 32)
-        x, r, a, get = model_inputs(data, index, refiner.config.base)
-        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=autocast):
+        x, r, a, get = model_inputs(data, index, refiner.config.base, device=device)
+        with torch.autocast(device.type, dtype=torch.bfloat16, enabled=autocast):
             delta = refiner.correction(x.contiguous(memory_format=torch.channels_last),
                                        get("env") if refiner.config.lighting else None).float()
         r, a = refiner.corrected(delta, r, a, inputs=x[:, :3])
-        relit.append((r + 1) / 2)
-        albedo.append((a + 1) / 2)
+        relit.append(((r + 1) / 2).cpu())
+        albedo.append(((a + 1) / 2).cpu())
     return scores(data, torch.cat(relit).permute(0, 2, 3, 1).numpy(), torch.cat(albedo).permute(0, 2, 3, 1).numpy())
 
 
@@ -305,6 +319,7 @@ def train(args: argparse.Namespace, log=print) -> dict:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     torch.set_num_threads(args.threads)
+    device = resolve_device(args.device)
     spec, _, _ = load_model(args.model, "cpu")
     config = flag_config(args)
     pack = load_packs(args.pack)
@@ -314,17 +329,17 @@ def train(args: argparse.Namespace, log=print) -> dict:
     items = unseen_items(pack["names"], [*args.seen, args.val_pack], args.scenes, args.same_scenes)
     if not items:
         raise ValueError("no scene of the packs is left once the --seen packs' scenes are taken out")
-    outputs = cached_outputs(out / "outputs-train.npz", args.model, pack, items, log)
+    outputs = cached_outputs(out / "outputs-train.npz", args.model, pack, items, log, device=device)
     train_data = item_tensors(pack, items, outputs, spec, config.base)
     del pack
     val_pack = load_packs(args.val_pack)
     val_items = unseen_items(val_pack["names"], [], None, len(val_pack["names"]) if args.same_scenes else 0)
-    val_outputs = cached_outputs(out / "outputs-val.npz", args.model, val_pack, val_items, log)
+    val_outputs = cached_outputs(out / "outputs-val.npz", args.model, val_pack, val_items, log, device=device)
     val_data = item_tensors(val_pack, val_items, val_outputs, spec, config.base)
     del val_pack
-    autocast = resolve_precision("auto", torch.device("cpu")) == torch.bfloat16
+    autocast = resolve_precision("auto", device) == torch.bfloat16
 
-    model = Refiner(config).to(memory_format=torch.channels_last)   # ~1.4× faster convolutions on a CPU
+    model = Refiner(config).to(device, memory_format=torch.channels_last)   # ~1.4× faster convolutions on a CPU
     ema = copy.deepcopy(model).eval().requires_grad_(False)
     optimizer = refiner_optimizer(model, args.lr, args.head_lr, transport_lr=args.transport_lr)
     generator = torch.Generator().manual_seed(args.seed)
@@ -334,7 +349,7 @@ def train(args: argparse.Namespace, log=print) -> dict:
         state["start"]["filtered"] = scores(val_data, _hwc(val_data["f_relit"]), _hwc(val_data["f_albedo"]))
     checkpoint = out / CHECKPOINT_FILE
     if checkpoint.is_file():
-        saved = torch.load(checkpoint, map_location="cpu", weights_only=True)
+        saved = torch.load(checkpoint, map_location=device, weights_only=True)
         if RefinerConfig.from_dict(saved["config"]).shape != config.shape:
             raise ValueError(f"{checkpoint} is a refiner of another shape ({saved['config']}); "
                              "give a new --out or the same --widths/--blocks/--base/--lighting/--input-mix/"
@@ -342,7 +357,7 @@ def train(args: argparse.Namespace, log=print) -> dict:
         model.load_state_dict(saved["model"])
         ema.load_state_dict(saved["ema"])
         optimizer = refiner_optimizer(model, args.lr, args.head_lr, saved["optimizer"], args.transport_lr)
-        generator.set_state(saved["generator"])
+        generator.set_state(saved["generator"].cpu())
         state = json.loads(saved["state"])
         log(f"resumed at step {state['step']} ({state['seconds'] / 60:.1f} min used)"
             + (f"; --init {args.init} is for a new run folder and is not used" if args.init is not None else ""))
@@ -373,6 +388,9 @@ def train(args: argparse.Namespace, log=print) -> dict:
         (out / "best.json").write_text(json.dumps(best, indent=1))
         state["best"] = score
 
+    if state["best"] is None and "init" in state["start"]:
+        save_best(state["start"]["init"])    # the refiner it starts from is the one to beat, and kept if none does
+
     count = len(train_data["input"])
     weights = None
     if args.alike_weight != 1.0:       # items the new light changes little (a high floor), drawn more often
@@ -386,17 +404,17 @@ def train(args: argparse.Namespace, log=print) -> dict:
         index = (torch.randint(0, count, (args.batch,), generator=generator) if weights is None
                  else torch.multinomial(weights, args.batch, replacement=True, generator=generator))
         flip = torch.rand(args.batch, generator=generator) < 0.5
-        x, r, a, get = model_inputs(train_data, index, config.base, flip)
+        x, r, a, get = model_inputs(train_data, index, config.base, flip, device)
         targets = {"relit": _signed(get("target")), "albedo": _signed(get("albedo_t"))}
         env = get("env")
         if args.permute_colours:
-            order = torch.argsort(torch.rand(args.batch, 3, generator=generator), dim=1)
+            order = torch.argsort(torch.rand(args.batch, 3, generator=generator), dim=1).to(device)
             x, r, a = (permute_colours(t, order) for t in (x, r, a))
             targets = {k: permute_colours(t, order) for k, t in targets.items()}
             env = env.gather(3, order.view(-1, 1, 1, 3).expand_as(env))     # the light's colours alike
         for group in optimizer.param_groups:
             group["lr"] = args.lr * group["scale"] * min(1.0, (state["step"] + 1) / args.warmup)
-        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=autocast):
+        with torch.autocast(device.type, dtype=torch.bfloat16, enabled=autocast):
             delta = model(x.contiguous(memory_format=torch.channels_last),
                           model.light(env) if config.lighting else None).float()
         mask = get("mask")
@@ -433,6 +451,30 @@ def train(args: argparse.Namespace, log=print) -> dict:
     if args.model_dir is not None:
         write_model(Path(args.model), out, Path(args.model_dir), best, args.slot)
     return best
+
+
+SHAPE_FLAGS = ("widths", "blocks", "base", "clips", "flip_average", "lighting", "relit_gain", "input_mix",
+               "light_detail", "film_encoder", "transport", "reshade")
+
+
+def refit_flags(args: argparse.Namespace) -> None:
+    """`--refit`: set the shape flags (`SHAPE_FLAGS`) from the refiner `args.model`'s config.json has in `args.slot`,
+    and `--init` (unless given) to that refiner's weights, so that the run fits the model's own refiner again to
+    what its DiT now makes. ValueError in one sentence where the model has no refiner there."""
+    path = Path(args.model) / CONFIG_FILE
+    try:
+        entry = json.loads(path.read_text()).get(args.slot)
+    except (OSError, ValueError) as exc:
+        raise ValueError(f"--refit reads the refiner from {path}, which cannot be read ({exc})") from None
+    if not entry:
+        raise ValueError(f"--refit: {path} names no refiner in \"{args.slot}\"; give --slot the one it has, or the "
+                         "shape flags without --refit")
+    config = RefinerConfig.from_dict(entry)
+    for flag in SHAPE_FLAGS:
+        value = getattr(config, flag)
+        setattr(args, flag, list(value) if isinstance(value, tuple) else value)
+    if args.init is None:
+        args.init = Path(args.model) / REFINER_SLOTS[args.slot]
 
 
 def flag_config(args: argparse.Namespace) -> RefinerConfig:
@@ -679,7 +721,19 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--val-every-minutes", type=float, default=7.0)
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--refit", action="store_true",
+                        help="fit --model's own refiner in --slot again (after its DiT changed): its shape flags from the "
+                             "model's config.json and, unless --init says otherwise, its weights as the start")
+    parser.add_argument("--device", default="cpu",
+                        help="cpu (default), cuda or cuda:N: where the DiT's outputs are made and the refiner trains "
+                             "(bf16 autocast where that device computes it faster); the draws stay on the CPU, so a "
+                             "run resumes alike on either")
     args = parser.parse_args(argv)
+    if args.refit:
+        try:
+            refit_flags(args)
+        except ValueError as error:
+            parser.error(str(error))
     for path in [*args.pack, *args.seen, args.val_pack]:
         if not path.is_file():
             parser.error(f"no pack at {path}")
@@ -691,6 +745,7 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"--model {args.model} holds no {DIT_FILE}; give a model folder")
     try:
         flag_config(args)
+        resolve_device(args.device)
     except ValueError as error:
         parser.error(str(error))
     threads = torch.get_num_threads()
