@@ -468,8 +468,10 @@ def train(config: FastConfig) -> dict:
             losses = []
             if not math.isfinite(mean):
                 raise FloatingPointError(f"non-finite loss at step {step}; lower the learning rate")
+            memory = ({"gpu_peak_gib": round(torch.cuda.max_memory_allocated(device) / 2 ** 30, 2)}
+                      if device.type == "cuda" else {})      # what a batch takes: sizes the next round's
             write(step=step, loss=round(mean, 5), lr=lr, grad_norm=round(float(grad_norm), 4),
-                  seconds=round(time.time() - train_started, 1))
+                  seconds=round(time.time() - train_started, 1), **memory)
         if time.time() - last_checkpoint > config.checkpoint_every_minutes * 60:
             save_checkpoint()
             last_checkpoint = time.time()
