@@ -30,51 +30,81 @@ RATIO_EPS = 1.0 / 255.0     # darkest input value a ratio is taken against (one 
 GUIDE_EPS = 1e-2            # guided-filter regularisation, in squared [0, 1] guide units (measured best)
 
 
-def guided_filter(guide: np.ndarray, source: np.ndarray, radius: int, eps: float) -> np.ndarray:
-    """He et al.'s guided filter of `source` [H,W,C] by a colour `guide` [H,W,3] (float32): opencv-contrib's
-    `cv2.ximgproc.guidedFilter` where this OpenCV has it, else `guided_filter_torch`, the same filter (a
-    machine with plain OpenCV, such as a GPU machine's image, computes the training's filtered frames alike)."""
-    if hasattr(cv2, "ximgproc"):
+def guided_filter(guide: np.ndarray, source: np.ndarray, radius: int, eps: float, device=None) -> np.ndarray:
+    """He et al.'s guided filter of `source` [..., H,W,C] by a colour `guide` [..., H,W,3] (float32; leading
+    dimensions are frames filtered one by one): opencv-contrib's `cv2.ximgproc.guidedFilter` where this OpenCV
+    has it, else `guided_filter_torch`, the same filter (a machine with plain OpenCV, such as a GPU machine's
+    image, computes the training's filtered frames alike; on `device`, a torch device, there)."""
+    if not hasattr(cv2, "ximgproc"):
+        return guided_filter_torch(guide, source, radius, eps, device)
+    if guide.ndim == 3:
         return cv2.ximgproc.guidedFilter(guide, source, int(radius), float(eps))
-    return guided_filter_torch(guide, source, radius, eps)
+    frames = [cv2.ximgproc.guidedFilter(np.ascontiguousarray(g), np.ascontiguousarray(p), int(radius), float(eps))
+              for g, p in zip(guide.reshape(-1, *guide.shape[-3:]), source.reshape(-1, *source.shape[guide.ndim - 3:]))]
+    return np.stack(frames).reshape(source.shape).astype(np.float32)
 
 
-def guided_filter_torch(guide: np.ndarray, source: np.ndarray, radius: int, eps: float) -> np.ndarray:
+def guided_filter_torch(guide: np.ndarray, source: np.ndarray, radius: int, eps: float, device=None) -> np.ndarray:
     """The colour guided filter (He et al. 2013, section 3.5) as `cv2.ximgproc.guidedFilter` computes it: box
     means over (2r+1)² windows with the border mirrored as OpenCV's BORDER_REFLECT (edge pixel repeated), the
-    guide's 3×3 covariance + eps·I inverted per pixel; float64 inside, float32 [H,W,C] out (within ~1e-7 of
-    OpenCV's)."""
+    guide's 3×3 covariance + eps·I inverted per pixel; float64 inside, float32 out (within ~1e-7 of OpenCV's).
+    `guide` [..., H,W,3], `source` [..., H,W] or [..., H,W,C] with the same leading dimensions; computed on
+    `device` (None: the CPU), a few frames at a time on a CPU (~15 ms a 128² frame), many on a GPU."""
+    import torch
+
+    lead = guide.shape[:-3]
+    h, w = guide.shape[-3:-1]
+    guides = np.asarray(guide, dtype=np.float32).reshape(-1, h, w, 3)
+    src = np.asarray(source, dtype=np.float32)
+    flat = src.ndim == guide.ndim - 1
+    sources = src.reshape(len(guides), h, w, -1)
+    device = torch.device(device or "cpu")
+    chunk = 2 if device.type == "cpu" else 64        # a CPU's caches hold two frames' sums; more only slows it
+    parts = []
+    for start in range(0, len(guides), chunk):
+        image = torch.from_numpy(guides[start:start + chunk]).to(device, torch.float64).permute(0, 3, 1, 2)
+        p = torch.from_numpy(sources[start:start + chunk]).to(device, torch.float64).permute(0, 3, 1, 2)
+        parts.append(_guided_frames(image, p, int(radius), eps).permute(0, 2, 3, 1).cpu().numpy().astype(np.float32))
+    result = np.concatenate(parts) if parts else np.zeros((0, h, w, sources.shape[-1]), np.float32)
+    return result.reshape(*lead, h, w) if flat else result.reshape(*lead, h, w, sources.shape[-1])
+
+
+def _guided_frames(image, p, r: int, eps: float):
+    """`guided_filter_torch` on tensors: guides [N,3,H,W] and sources [N,C,H,W] (float64) → [N,C,H,W]."""
     import torch
     import torch.nn.functional as F
 
-    r = int(radius)
-    image = torch.from_numpy(np.ascontiguousarray(guide, dtype=np.float64)).permute(2, 0, 1)[None]   # [1,3,H,W]
-    src = np.asarray(source, dtype=np.float64)
-    p = torch.from_numpy(np.ascontiguousarray(src[..., None] if src.ndim == 2 else src)).permute(2, 0, 1)[None]
     h, w = image.shape[-2:]
 
-    def mirrored(n: int) -> torch.Tensor:
-        index = torch.arange(-r, n + r) % (2 * n)
-        return torch.where(index >= n, 2 * n - 1 - index, index)
-
-    rows, cols = mirrored(h), mirrored(w)
+    def mirrored(x: torch.Tensor, dim: int) -> torch.Tensor:
+        """`x` with r pixels mirrored on at both ends of `dim` (the edge pixel repeated, again and again past it)."""
+        n = x.shape[dim]
+        if r <= n:
+            return torch.cat([x.narrow(dim, 0, r).flip(dim), x, x.narrow(dim, n - r, r).flip(dim)], dim)
+        index = torch.arange(-r, n + r, device=x.device) % (2 * n)
+        return x.index_select(dim, torch.where(index >= n, 2 * n - 1 - index, index))
 
     def box(x: torch.Tensor) -> torch.Tensor:
-        return F.avg_pool2d(x[:, :, rows][:, :, :, cols], 2 * r + 1, stride=1)
+        """Window means by running sums along each axis in turn (O(1) a pixel whatever the radius)."""
+        k = 2 * r + 1
+        for dim in (2, 3):
+            sums = F.pad(mirrored(x, dim).cumsum(dim), (1, 0) if dim == 3 else (0, 0, 1, 0))
+            x = sums.narrow(dim, k, sums.shape[dim] - k) - sums.narrow(dim, 0, sums.shape[dim] - k)
+        return x / (k * k)
 
+    n = len(image)
     mean_i, mean_p = box(image), box(p)
     pairs = [(i, j) for i in range(3) for j in range(3)]
     cov = box(torch.stack([image[:, i] * image[:, j] for i, j in pairs], 1)) \
-        - torch.stack([mean_i[:, i] * mean_i[:, j] for i, j in pairs], 1)                 # [1,9,H,W]
-    inverse = torch.linalg.inv(cov.permute(0, 2, 3, 1).reshape(1, h, w, 3, 3) + eps * torch.eye(3, dtype=cov.dtype))
-    out = []
-    for c in range(p.shape[1]):
-        cross = box(image * p[:, c:c + 1]) - mean_i * mean_p[:, c:c + 1]                  # [1,3,H,W]
-        a = torch.einsum("nhwij,njhw->nihw", inverse, cross)
-        b = mean_p[:, c:c + 1] - (a * mean_i).sum(1, keepdim=True)
-        out.append((box(a) * image).sum(1, keepdim=True) + box(b))
-    result = torch.cat(out, 1)[0].permute(1, 2, 0).numpy().astype(np.float32)
-    return result[..., 0] if src.ndim == 2 else result
+        - torch.stack([mean_i[:, i] * mean_i[:, j] for i, j in pairs], 1)                 # [N,9,H,W]
+    inverse = torch.linalg.inv(cov.permute(0, 2, 3, 1).reshape(n, h, w, 3, 3)
+                               + eps * torch.eye(3, dtype=cov.dtype, device=cov.device))
+    channels = p.shape[1]
+    cross = (box((image[:, None] * p[:, :, None]).reshape(n, 3 * channels, h, w)).reshape(n, channels, 3, h, w)
+             - mean_i[:, None] * mean_p[:, :, None])                                      # [N,C,3,H,W]
+    a = torch.einsum("nhwij,ncjhw->ncihw", inverse, cross)
+    b = mean_p - (a * mean_i[:, None]).sum(2)                                             # [N,C,H,W]
+    return (box(a.reshape(n, 3 * channels, h, w)).reshape(n, channels, 3, h, w) * image[:, None]).sum(2) + box(b)
 
 
 def guided_ratio_upsample(full_input: np.ndarray, small_input: np.ndarray, small_output: np.ndarray,
@@ -117,7 +147,7 @@ def guided_ratio_upsample(full_input: np.ndarray, small_input: np.ndarray, small
     return out[0] if single else out
 
 
-def smooth_offset(guide: np.ndarray, output: np.ndarray, radius: int, eps: float = GUIDE_EPS) -> np.ndarray:
+def smooth_offset(guide: np.ndarray, output: np.ndarray, radius: int, eps: float = GUIDE_EPS, device=None) -> np.ndarray:
     """What a residual model changed, edge-aware smoothed: clip(guide + GF(output − guide), 0, 1).
 
     `guide` [T,H,W,3] is the input the model saw and `output` [T,H,W,3] (same size) its relit or
@@ -133,12 +163,7 @@ def smooth_offset(guide: np.ndarray, output: np.ndarray, radius: int, eps: float
     if guide.shape != output.shape or guide.ndim != 4 or guide.shape[-1] != 3:
         raise InputError(f"Smoothing an offset needs two clips [T,H,W,3] of one size; got "
                          f"{list(guide.shape)} and {list(output.shape)}.")
-    out = np.empty_like(output)
-    for t in range(len(guide)):
-        g = np.ascontiguousarray(guide[t])
-        offset = guided_filter(g, np.ascontiguousarray(output[t] - g), radius, eps)
-        out[t] = np.clip(g + offset, 0.0, 1.0)
-    return out
+    return np.clip(guide + guided_filter(guide, output - guide, radius, eps, device), 0.0, 1.0)
 
 
 def plain_upsample(small_output: np.ndarray, height: int, width: int) -> np.ndarray:

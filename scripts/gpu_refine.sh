@@ -13,7 +13,7 @@
 # REFINE_BATCH (16), SAME (80 items relit to their own light), THREADS (4) and VAL_EVERY (0.5 min) tune the runs.
 set -uo pipefail
 cd "$(dirname "$0")/.."
-export PYTHONUNBUFFERED=1 PYTHONPATH=$PWD
+export PYTHONUNBUFFERED=1 PYTHONPATH=$PWD${PYTHONPATH:+:$PYTHONPATH}   # keeps a caller's (carried wheels in /tmp/site)
 minutes=${1:?usage: gpu_refine.sh MINUTES}
 python=${PYTHON:-python3}
 like=${LIKE:-models/default}

@@ -9,7 +9,7 @@
 # Packs too large for one call travel in pieces (python -m relight_core.training.pieces; docs/TRAINING.md).
 set -uo pipefail
 cd "$(dirname "$0")/.."
-export PYTHONUNBUFFERED=1 PYTHONPATH=$PWD
+export PYTHONUNBUFFERED=1 PYTHONPATH=$PWD${PYTHONPATH:+:$PYTHONPATH}   # keeps a caller's (carried wheels in /tmp/site)
 minutes=${1:?usage: gpu_round.sh MINUTES}
 python=${PYTHON:-python3}
 out=${OUT:-runs/gpu-round}

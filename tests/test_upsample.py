@@ -121,6 +121,15 @@ def test_the_torch_guided_filter_is_opencv_contribs_and_stands_in_where_opencv_h
         assert got.shape == expected.shape and got.dtype == np.float32
         np.testing.assert_allclose(got, expected, atol=1e-6)
         assert np.abs(got - source).max() > 0.1                          # it did filter
+    # Frames in batches of any shape, at once, and on a given torch device: each as OpenCV filters it alone.
+    guides = rng.random((2, 3, 24, 20, 3)).astype(np.float32)
+    sources = rng.random((2, 3, 24, 20)).astype(np.float32)
+    batched = upsample.guided_filter_torch(guides, sources, 5, 0.01, device="cpu")
+    assert batched.shape == sources.shape
+    for i in range(2):
+        for j in range(3):
+            np.testing.assert_allclose(batched[i, j], cv2.ximgproc.guidedFilter(guides[i, j], sources[i, j], 5, 0.01),
+                                       atol=1e-6)
     # A plain OpenCV (a GPU machine's image) has no ximgproc: the offset filter and the ratio transfer give the same.
     guide = rng.random((2, 32, 32, 3)).astype(np.float32)
     output = np.clip(guide + 0.2 * rng.random((2, 32, 32, 3)).astype(np.float32), 0, 1)

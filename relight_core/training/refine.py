@@ -195,11 +195,13 @@ def cached_outputs(path: Path, model: Path, pack: dict, items: list[tuple[int, i
     return out
 
 
-def item_tensors(pack: dict, items: list[tuple[int, int, int]], outputs: dict, spec, base: str) -> dict:
+def item_tensors(pack: dict, items: list[tuple[int, int, int]], outputs: dict, spec, base: str,
+                 device: str | torch.device | None = None) -> dict:
     """uint8 tensors per item: input, target, albedo_t, relit, albedo (the DiT's), mask; env, the target's
     camera-frame probe on the pack's lighting grid (float32 [N,s,s,3]); for base "filtered" also f_relit,
     f_albedo (after the model's offset filter, as `Relighter._smoothed`); same, True where the input is the
-    scene under the target light too."""
+    scene under the target light too. The filter runs where OpenCV's does, or in torch on `device` where this
+    OpenCV has no ximgproc (`upsample.guided_filter`)."""
     scenes = torch.tensor([s for s, _, _ in items])
     targets = torch.tensor([t for _, t, _ in items])
     same = torch.tensor([bool(k) for _, _, k in items])
@@ -214,7 +216,7 @@ def item_tensors(pack: dict, items: list[tuple[int, int, int]], outputs: dict, s
         for start in range(0, len(items), 256):
             guide = _hwc(data["input"][start:start + 256])
             for key, source, radius in (("f_relit", "relit", radii[0]), ("f_albedo", "albedo", radii[1])):
-                frames = smooth_offset(guide, _hwc(data[source][start:start + 256]), radius)
+                frames = smooth_offset(guide, _hwc(data[source][start:start + 256]), radius, device=device)
                 filtered[key].append(torch.from_numpy(np.round(frames * 255).astype(np.uint8)).permute(0, 3, 1, 2))
         data.update({k: torch.cat(v).contiguous() for k, v in filtered.items()})
     return data
@@ -330,12 +332,12 @@ def train(args: argparse.Namespace, log=print) -> dict:
     if not items:
         raise ValueError("no scene of the packs is left once the --seen packs' scenes are taken out")
     outputs = cached_outputs(out / "outputs-train.npz", args.model, pack, items, log, device=device)
-    train_data = item_tensors(pack, items, outputs, spec, config.base)
+    train_data = item_tensors(pack, items, outputs, spec, config.base, device)
     del pack
     val_pack = load_packs(args.val_pack)
     val_items = unseen_items(val_pack["names"], [], None, len(val_pack["names"]) if args.same_scenes else 0)
     val_outputs = cached_outputs(out / "outputs-val.npz", args.model, val_pack, val_items, log, device=device)
-    val_data = item_tensors(val_pack, val_items, val_outputs, spec, config.base)
+    val_data = item_tensors(val_pack, val_items, val_outputs, spec, config.base, device)
     del val_pack
     autocast = resolve_precision("auto", device) == torch.bfloat16
 
