@@ -382,7 +382,7 @@ def train(args: argparse.Namespace, log=print) -> dict:
     records = open(out / "log.jsonl", "a")
 
     def save_best(score: dict) -> None:
-        save_file({k: v.contiguous() for k, v in ema.state_dict().items()}, out / REFINER_FILE)
+        save_file({k: v.detach().cpu().contiguous() for k, v in ema.state_dict().items()}, out / REFINER_FILE)
         kept = [*config.clips, *(["same"] if "same" in score and "relit" in config.clips else [])]
         best = {"step": state["step"], "val": {k: score[k] for k in kept}, "start": state["start"],
                 "refiner": config.to_dict(),
@@ -517,7 +517,7 @@ def initial_weights(refiner: Refiner, path: Path) -> str:
     the same shape loads as it is; one with a level fewer (the same widths but the last, blocks and base)
     is grown into this one (`grown_state`), giving the same output. Returns which it was."""
     try:
-        state = load_file(str(path))
+        state = load_file(str(path), device=str(next(refiner.parameters()).device))    # beside the fresh weights
     except Exception as exc:  # safetensors raises its own error types for corrupt headers
         raise ValueError(f"--init {path} is not a readable safetensors file ({exc})") from exc
     lit = ""
