@@ -11,8 +11,8 @@ copies it into `--machine-dir` (/tmp/gpu) there; the last call then runs `--run`
         packs=$C/gpu-pieces-s7 aux/model=models/default refit/refit.npz=$C/refit-s8/p1.npz \\
         --run "bash scripts/gpu_whole_round.sh 5.5 2"
 
-At the GPU session: copy (or `cp -al`) the folder into the repository's `.dev/` (ignored by
-.git/info/exclude), take the large tracked files out of the working tree as calls.md says, and make the calls
+At the GPU session: copy (or `cp -al`) the folder into the repository's `.dev/` (in .gitignore, so that
+it travels only when carried), take the large tracked files out of the working tree as calls.md says, and make the calls
 one after another.
 """
 
