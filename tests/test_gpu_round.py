@@ -75,6 +75,9 @@ def test_a_whole_round_is_planned_into_calls_carried_and_hands_back_a_model_with
     assert plan.count("carry") == len(planned) and plan.rstrip().endswith("0.02 0.02`")
     with pytest.raises(ValueError, match="more than one call's"):
         calls.plan_calls(files, tmp_path / "calls2", 20.0)
+    with pytest.raises(ValueError, match="not an earlier plan"):             # never clears a folder of other files
+        calls.plan_calls(files, tmp_path / "pieces", 34.0)
+    assert (tmp_path / "pieces" / "val.npz").is_file()
     machine = tmp_path / "machine"
     machine.mkdir()
     for number in range(1, len(planned) + 1):                                    # each call copies its folder in

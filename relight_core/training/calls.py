@@ -68,7 +68,9 @@ def plan_calls(specs: list[str], out: Path, limit_mb: float, run: str = "", mach
         call["files"].append((dest, path))
         call["mb"] += sizes[dest]
     if out.exists():
-        shutil.rmtree(out)
+        if not (out / "calls.json").is_file() and any(out.iterdir()):
+            raise ValueError(f"{out} holds files that are not an earlier plan (no calls.json); give a new or empty --out")
+        shutil.rmtree(out)                     # an earlier plan: made again from scratch
     out.mkdir(parents=True)
     lines = [f"# {len(calls)} calls to the GPU machine (≤ {limit_mb} MB each, the working tree besides)", "",
              "Before the first: copy this folder to the repository's `.dev/calls` (`cp -al` keeps it to links) and "
