@@ -1,9 +1,9 @@
 #!/usr/bin/env bash
 # After a GPU round changed the DiT (scripts/gpu_round.sh): fit the model's two refiners again to what the new
 # DiT makes, on the GPU, side by side, within MINUTES — so that the round hands back a whole model rather than a
-# DiT whose refiners were fitted to the one before. On the same machine as the round, the call after it:
-#   DIT=/tmp/round PACKS="/tmp/refine/*.npz" VAL=/tmp/aux/refine-val.npz LIKE=/tmp/aux/like \
-#     bash scripts/gpu_refine.sh 2.5
+# DiT whose refiners were fitted to the one before. scripts/gpu_whole_round.sh runs it after the round; alone:
+#   DIT=/tmp/gpu/work/round PACKS="/tmp/gpu/refit/*.npz" VAL=/tmp/gpu/aux/refit-val.npz LIKE=/tmp/gpu/aux/model \
+#     OUT=$OUT bash scripts/gpu_refine.sh 2.5
 # DIT: the round's shards + config.json (or a model folder); LIKE: the model whose settings and refiners carry
 # over (models/default); PACKS: scenes the new DiT never trained on (the refiners learn its errors on new photos);
 # VAL: held-out scenes neither ever saw. Each refiner starts from LIKE's (training.refine --refit), keeps its best
