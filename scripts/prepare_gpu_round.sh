@@ -2,7 +2,7 @@
 # Make everything a GPU round needs on this machine's CPUs, from nothing: the rendered scenes, the packs, the
 # pieces, and the folders of the calls that carry them to a GPU machine, each within one call's 64 MiB (docs/
 # TRAINING.md, "A whole round on a GPU machine"). Start it at the very beginning of a session that has a GPU (or
-# the session before): on 2 cores the 7,022 seed-7 scenes take about an hour, the 900 seed-8 ones for the refiners
+# the session before): on 2 cores the 7,022 seed-7 scenes take ~80 minutes (1.5 scenes/s), the 900 seed-8 ones
 # ~10 minutes, the test split 4. Every step is deterministic and resumes where it stopped (render-data skips
 # finished scenes; a pack or the pieces are made again only when missing), so run it again after a stop.
 #   bash scripts/prepare_gpu_round.sh      # → ~/.cache/unirelight-studio/gpu-calls/{c1..cN, calls.md}
