@@ -992,6 +992,10 @@ def test_assemble_swaps_a_gpu_rounds_dit_or_a_refiner_into_a_model_that_keeps_ho
     with pytest.raises(SystemExit):
         assemble.main(["--like", str(like), "--refiner", str(tmp_path / "wide.safetensors"), "--out", str(tmp_path / "y")])
     assert "does not load" in capsys.readouterr().err
+    (tmp_path / "torn.safetensors").write_bytes(b"\x10\x00\x00\x00not a header")
+    with pytest.raises(SystemExit):
+        assemble.main(["--like", str(like), "--refiner", str(tmp_path / "torn.safetensors"), "--out", str(tmp_path / "t")])
+    assert "is not a readable safetensors file" in capsys.readouterr().err
     del config["relit_refiner"]
     (like / "config.json").write_text(json.dumps(config))
     with pytest.raises(SystemExit):

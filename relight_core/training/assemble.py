@@ -86,7 +86,11 @@ def assemble(like: Path, out: Path, dit: Path | None = None, refiners: dict[str,
             continue
         source = refiners.get(slot, like / file)
         if bf16 or slot in refiners:
-            save_file(stored(load_file(str(source))), out / file)
+            try:
+                weights = load_file(str(source))
+            except Exception as exc:  # safetensors raises its own error types for corrupt headers
+                raise ValueError(f"{source} is not a readable safetensors file ({exc})") from None
+            save_file(stored(weights), out / file)
         else:
             shutil.copyfile(source, out / file)
     (out / CONFIG_FILE).write_text(json.dumps(config, indent=2) + "\n")
