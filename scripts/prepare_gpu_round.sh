@@ -48,8 +48,6 @@ if [[ ! -f "$pieces_dir/val.npz" ]]; then
   "$python" -m relight_core.training.pieces --pack "$pack" --val "$val" --pieces "${pieces[@]}" \
     --out "$pieces_dir.partial"
   "$python" -m relight_core.training.pack --data "$cache/data" --split test --out "$pieces_dir.partial/test.npz"
-  mkdir -p "$pieces_dir.partial/init"
-  cp models/default/config.json models/default/dit.safetensors "$pieces_dir.partial/init/"
   mv "$pieces_dir.partial" "$pieces_dir"
 fi
 echo "$(date +%H:%M:%S) $refit_scenes seed-$refit_seed scenes for the refiners (no model has seen them) → $refit_data"

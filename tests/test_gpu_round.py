@@ -44,7 +44,8 @@ def test_a_gpu_round_runs_its_learning_rates_and_hands_back_the_pick(tmp_path):
     assert spec.residual and spec.notes["picked"]["from"] == picked["best"]
 
 
-def test_a_whole_round_is_planned_into_calls_carried_and_hands_back_a_model_with_its_refiners_fitted_again(tmp_path):
+def test_a_whole_round_is_planned_into_calls_carried_and_hands_back_a_model_with_its_refiners_fitted_again(tmp_path,
+                                                                                                         capsys):
     """training.calls cuts the files into calls within a size; copied in turn into the machine's folder, the last
     runs scripts/gpu_whole_round.sh: the DiT's round, then both refiners fitted again to the picked DiT (here at
     lr 0, so the start is kept), all in ≤ 8 files; here the parts make a model folder that runs."""
@@ -75,6 +76,12 @@ def test_a_whole_round_is_planned_into_calls_carried_and_hands_back_a_model_with
     assert plan.count("carry") == len(planned) and plan.rstrip().endswith("0.02 0.02`")
     with pytest.raises(ValueError, match="more than one call's"):
         calls.plan_calls(files, tmp_path / "calls2", 20.0)
+    with pytest.raises(SystemExit):                                          # the CLI: one sentence, no traceback
+        calls.main(["aux/val.npz", "--out", str(tmp_path / "calls3")])
+    assert "is not DEST=SOURCE" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        calls.main([f"aux/x.npz={tmp_path / 'nowhere.npz'}", "--out", str(tmp_path / "calls3")])
+    assert "nothing at" in capsys.readouterr().err
     with pytest.raises(ValueError, match="not an earlier plan"):             # never clears a folder of other files
         calls.plan_calls(files, tmp_path / "pieces", 34.0)
     assert (tmp_path / "pieces" / "val.npz").is_file()

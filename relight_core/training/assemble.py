@@ -29,6 +29,14 @@ from relight_core.errors import InputError
 from relight_core.refiner import REFINER_SLOTS
 
 
+def _weights(path: Path) -> dict[str, torch.Tensor]:
+    """A safetensors file's tensors, or ValueError in one sentence for one that cannot be read."""
+    try:
+        return load_file(str(path))
+    except Exception as exc:  # safetensors raises its own error types for corrupt headers
+        raise ValueError(f"{path} is not a readable safetensors file ({exc})") from None
+
+
 def dit_weights(source: Path) -> tuple[dict[str, torch.Tensor], dict]:
     """(state dict, config.json) of a model folder or a folder of `dit-shard-*.safetensors` + config.json."""
     config_path = source / CONFIG_FILE
@@ -39,10 +47,7 @@ def dit_weights(source: Path) -> tuple[dict[str, torch.Tensor], dict]:
         raise ValueError(f"--dit {source} holds neither {DIT_FILE} nor dit-shard-*.safetensors")
     state: dict[str, torch.Tensor] = {}
     for path in files:
-        try:
-            state.update(load_file(str(path)))
-        except Exception as exc:  # safetensors raises its own error types for corrupt headers
-            raise ValueError(f"{path} is not a readable safetensors file ({exc})") from None
+        state.update(_weights(path))
     return state, json.loads(config_path.read_text())
 
 
@@ -72,7 +77,7 @@ def assemble(like: Path, out: Path, dit: Path | None = None, refiners: dict[str,
                              "differ); a model's refiners and settings carry over only to the same DiT")
         config.setdefault("notes", {})["dit_round"] = dit_config.get("notes", {})
     else:
-        state = load_file(str(like / DIT_FILE))
+        state = _weights(like / DIT_FILE)
     if out.resolve() == like.resolve():
         raise ValueError("--out must be a new folder, not --like's")
     out.mkdir(parents=True, exist_ok=True)
@@ -86,11 +91,7 @@ def assemble(like: Path, out: Path, dit: Path | None = None, refiners: dict[str,
             continue
         source = refiners.get(slot, like / file)
         if bf16 or slot in refiners:
-            try:
-                weights = load_file(str(source))
-            except Exception as exc:  # safetensors raises its own error types for corrupt headers
-                raise ValueError(f"{source} is not a readable safetensors file ({exc})") from None
-            save_file(stored(weights), out / file)
+            save_file(stored(_weights(source)), out / file)
         else:
             shutil.copyfile(source, out / file)
     (out / CONFIG_FILE).write_text(json.dumps(config, indent=2) + "\n")

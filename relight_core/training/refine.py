@@ -260,13 +260,12 @@ def model_inputs(data: dict, index, base: str, flip: torch.Tensor | None = None,
     """(network input [B,9|15,H,W], relit base, albedo base) in [-1, 1] for items `index`, and `get`, which
     reads any other of their tensors (flipped alike: images and masks along x, the probe env u → 1 − u), all
     on `device` (None: where `data` is)."""
+    flips = flip if flip is None or device is None else flip.to(device)
+
     def get(key):
         x = data[key][index]
         if device is not None:
             x = x.to(device, non_blocking=True)
-            flips = None if flip is None else flip.to(device)
-        else:
-            flips = flip
         if flips is not None:
             axis = 2 if key == "env" else -1    # env [B,s,s,3]: the panorama's u axis
             x = torch.where(flips.view(-1, *([1] * (x.dim() - 1))), x.flip(axis), x)
