@@ -1,0 +1,306 @@
+"""The DiT's top blocks trained on a CPU over a frozen, cached trunk (2026-12-07, third session).
+
+CPU rounds of the whole DiT did not move the GPU-trained one: a CPU thread affords ~2.5 samples a second,
+and the GPU round's gain took ~66,000 (docs/TRAINING.md, "A GPU's batch on a CPU"). The shipped model runs
+the DiT once, at σ 80 (one step: x0 ≈ input + c_out·F(c_in·x_T); the closing σ 0.002 call moves it by
+< 0.01), so only that regime matters. Here the first K blocks are frozen and their output tokens cached once
+per item (on one noise draw, as the shipped sampler's seed), and only blocks K.. and the final layer train,
+each sample costing the top's share of a forward and backward: many times the samples a CPU can afford.
+
+    cache: PYTHONPATH=. python runs/dit-top/top.py cache OUT --packs P1.npz ... --items N [--val VAL.npz]
+    train: PYTHONPATH=. python runs/dit-top/top.py train OUT --minutes M [--lr 1e-4] [--batch 16] [--init DIR]
+    (the best EMA by validation is written to OUT/model/, the shipped folder with its DiT's top replaced)
+
+The loss is the protocol's (refine.item_loss: scale-fitted log MSE on the mask) on the relit frame, plus
+half of it on the albedo, each decoded from x0 = x0_shipped + c_out·(F_new − F_shipped).
+"""
+from __future__ import annotations
+
+import argparse
+import copy
+import json
+import math
+import shutil
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from safetensors.torch import save_file
+
+from relight_core.checkpoint import load_model
+from relight_core.diffusion import edm_scalings
+from relight_core.dit import NUM_CLIPS
+from relight_core.precision import resolve_precision
+from relight_core.training.fast import make_batch, sample_relight
+from relight_core.training.pack import load_packs
+from relight_core.training.refine import item_loss
+from relight_core.evaluation.metrics import protocol_psnr
+
+MODEL = Path("models/default")
+SIGMA = 80.0
+
+
+def log(out: Path, **record) -> None:
+    record["time"] = time.strftime("%H:%M:%S")
+    line = json.dumps(record)
+    print(line, flush=True)
+    with open(out / "log.jsonl", "a") as f:
+        f.write(line + "\n")
+
+
+def cache(args) -> None:
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    torch.set_num_threads(args.threads)
+    spec, dit, tokenizer = load_model(MODEL)
+    autocast = resolve_precision("auto", torch.device("cpu")) == torch.bfloat16
+    captured = {}
+
+    def trunk_hook(_, __, output):
+        if "tokens" not in captured:
+            captured["tokens"] = output.detach().half()
+
+    def net_hook(_, __, output):
+        if "f" not in captured:
+            captured["f"] = output.detach().float()
+
+    dit.blocks[args.k - 1].register_forward_hook(trunk_hook)
+    dit.register_forward_hook(net_hook)
+
+    def run(pack, scenes, targets, name):
+        chunk = {"tokens": [], "f": [], "x0": [], "relit_t": [], "albedo_t": [], "mask": []}
+        started = time.time()
+        for start in range(0, len(scenes), args.batch):
+            s, t = scenes[start:start + args.batch], targets[start:start + args.batch]
+            data = make_batch(pack, tokenizer, s, t, torch.zeros(len(s), dtype=torch.bool))
+            captured.clear()
+            with torch.no_grad():
+                x0 = sample_relight(dit, data, 1, autocast=autocast, residual=True)   # seed 0, as dit_outputs
+            chunk["tokens"].append(captured["tokens"])
+            chunk["f"].append(captured["f"][:, :, 1:].half())                 # relit, albedo clips [B,192,2,h,w]
+            chunk["x0"].append(x0[:, :, 1:].half())
+            chunk["relit_t"].append(pack["rgb"][s, t])                          # uint8 [B,3,H,W]
+            chunk["albedo_t"].append(pack["albedo"][s])
+            chunk["mask"].append(pack["mask"][s])
+            done = start + len(s)
+            if (done // args.batch) % 20 == 0 or done == len(scenes):
+                log(out, event="cache", name=name, done=done, of=len(scenes),
+                    seconds=round(time.time() - started, 1))
+            if sum(len(x) for x in chunk["tokens"]) >= args.chunk or done == len(scenes):
+                part = {k: torch.cat(v) for k, v in chunk.items()}
+                index = len(list(out.glob(f"{name}-*.pt")))
+                torch.save(part, out / f"{name}-{index:03d}.partial")
+                (out / f"{name}-{index:03d}.partial").replace(out / f"{name}-{index:03d}.pt")
+                chunk = {k: [] for k in chunk}
+
+    if args.val:
+        val = load_packs([Path(args.val)])
+        n = len(val["rgb"])
+        scenes = torch.arange(n).repeat_interleave(2)
+        targets = torch.tensor([0, 1]).repeat(n)
+        if not list(out.glob("val-*.pt")):
+            run(val, scenes, targets, "val")
+    pack = load_packs([Path(p) for p in args.packs])
+    n = len(pack["rgb"])
+    g = torch.Generator().manual_seed(args.seed)
+    order = torch.randperm(n, generator=g)[:args.items]
+    targets = torch.randint(0, 2, (n,), generator=g)[order]
+    done = sum(torch.load(p, weights_only=True)["mask"].shape[0] for p in out.glob("train-*.pt"))
+    run(pack, order[done:], targets[done:], "train")
+
+
+class Top(torch.nn.Module):
+    """Blocks k.. and the final layer of a JointDiT, on cached trunk tokens at σ 80."""
+
+    def __init__(self, dit, k: int):
+        super().__init__()
+        self.blocks = copy.deepcopy(dit.blocks[k:])
+        self.final_layer = copy.deepcopy(dit.final_layer)
+        self.dit = dit                                                            # frozen: embeddings, unpatchify
+        sigma = torch.tensor([SIGMA])
+        _, self.c_out, _, c_noise = edm_scalings(sigma)
+        autocast = resolve_precision("auto", torch.device("cpu")) == torch.bfloat16
+        with torch.no_grad(), torch.autocast("cpu", dtype=torch.bfloat16, enabled=autocast):  # as in the DiT's call
+            emb, lora = dit.t_embedder(c_noise.flatten().float())
+        self.register_buffer("emb", emb.float())
+        self.register_buffer("lora", lora.float())
+        cos, sin = dit.rope(1, 16, 16, torch.device("cpu"))
+        self.rope = (cos, sin)
+
+    def forward(self, tokens: torch.Tensor) -> torch.Tensor:
+        b = tokens.shape[0]
+        emb, lora = self.emb.expand(b, -1), self.lora.expand(b, -1)
+        tokens = tokens.float()
+        for block in self.blocks:
+            tokens = block(tokens, emb, lora, self.rope)
+        out = self.final_layer(tokens, emb, lora)
+        return self.dit.unpatchify(out, NUM_CLIPS, 16, 16).float()[:, :, 1:]      # relit, albedo [B,192,2,h,w]
+
+
+def frames(tokenizer, x0: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """relit, albedo [B,3,H,W] in [-1, 1] from x0 clips [B,192,2,h,w]."""
+    relit = tokenizer.decode(x0[:, :, 0:1])[:, :, 0]
+    albedo = tokenizer.decode(x0[:, :, 1:2])[:, :, 0]
+    return relit.clamp(-1, 1), albedo.clamp(-1, 1)
+
+
+class Chunks:
+    """The cached chunks, memory-mapped (runs side by side share the page cache); `[key][index]` gathers."""
+
+    def __init__(self, out: Path, name: str):
+        self.parts = [torch.load(p, weights_only=True, mmap=True) for p in sorted(out.glob(f"{name}-*.pt"))]
+        sizes = [len(p["mask"]) for p in self.parts]
+        self.starts = np.cumsum([0] + sizes)
+
+    def __len__(self) -> int:
+        return int(self.starts[-1])
+
+    def __getitem__(self, key: str):
+        chunks = self
+
+        class Gather:
+            def __getitem__(self, index):
+                if isinstance(index, slice):
+                    index = torch.arange(len(chunks))[index]
+                index = torch.as_tensor(index)
+                part = np.searchsorted(chunks.starts, index.numpy(), side="right") - 1
+                rows = [chunks.parts[k][key][int(i - chunks.starts[k])] for k, i in zip(part, index.numpy())]
+                return torch.stack(rows)
+        return Gather()
+
+
+def load_chunks(out: Path, name: str) -> Chunks:
+    return Chunks(out, name)
+
+
+def scores(top, tokenizer, val, autocast, batch=32) -> dict:
+    relit_p, albedo_p = [], []
+    for start in range(0, len(val), batch):
+        part = slice(start, start + batch)
+        tokens = val["tokens"][part]                                              # gathered outside autocast
+        with torch.no_grad(), torch.autocast("cpu", dtype=torch.bfloat16, enabled=autocast):
+            f = top(tokens)
+        x0 = val["x0"][part].float() + top.c_out * (f - val["f"][part].float())
+        relit, albedo = frames(tokenizer, x0)
+        hwc = lambda x: ((x.permute(0, 2, 3, 1).numpy() + 1) / 2).astype(np.float32)
+        masks = val["mask"][part].numpy()
+        rt, at = val["relit_t"][part].permute(0, 2, 3, 1).numpy() / 255, val["albedo_t"][part].permute(0, 2, 3, 1).numpy() / 255
+        r, a = hwc(relit), hwc(albedo)
+        relit_p += [protocol_psnr(r[i:i + 1], rt[i:i + 1], masks[i:i + 1]) for i in range(len(masks))]
+        albedo_p += [protocol_psnr(a[i:i + 1], at[i:i + 1], masks[i:i + 1]) for i in range(len(masks))]
+    return {"relit": round(float(np.mean(relit_p)), 4), "albedo": round(float(np.mean(albedo_p)), 4)}
+
+
+def train(args) -> None:
+    out = Path(args.out)
+    torch.set_num_threads(args.threads)
+    torch.manual_seed(args.seed)
+    spec, dit, tokenizer = load_model(args.init or MODEL)  # --init: a round's OUT/model, to go on from its top
+    autocast = resolve_precision("auto", torch.device("cpu")) == torch.bfloat16
+    top = Top(dit, args.k)
+    for p in top.parameters():
+        p.requires_grad_(False)
+    params = [p for m in (top.blocks, top.final_layer) for p in m.parameters()]
+    for p in params:
+        p.requires_grad_(True)
+    ema = [p.detach().clone() for p in params]
+    val = load_chunks(out, "val")
+    train_set = load_chunks(out, "train")
+    n = len(train_set)
+    log(out, event="start", init=str(args.init or MODEL), items=n, val_items=len(val), k=args.k, lr=args.lr, batch=args.batch,
+        params=sum(p.numel() for p in params), threads=args.threads)
+    start_score = scores(top, tokenizer, val, autocast)
+    log(out, event="val", step=0, **start_score)
+    best = {"score": start_score["relit"] + 0.5 * start_score["albedo"], "step": 0, **start_score}
+    optimizer = torch.optim.AdamW(params, lr=args.lr, betas=(0.9, 0.99), weight_decay=0.0)
+    started, step, last_val, losses = time.time(), 0, time.time(), []
+    budget = args.minutes * 60
+    while time.time() - started < budget:
+        progress = (time.time() - started) / budget
+        lr = args.lr * min(1.0, (step + 1) / args.warmup) * (0.1 + 0.9 * 0.5 * (1 + math.cos(math.pi * progress)))
+        for group in optimizer.param_groups:
+            group["lr"] = lr
+        index = torch.randint(0, n, (args.batch,))
+        tokens = train_set["tokens"][index]                                       # gathered outside autocast
+        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=autocast):
+            f = top(tokens)
+        x0 = train_set["x0"][index].float() + top.c_out * (f - train_set["f"][index].float())
+        relit, albedo = frames(tokenizer, x0)
+        mask = train_set["mask"][index]
+        loss = (item_loss(relit, train_set["relit_t"][index].float() / 127.5 - 1, mask)
+                + 0.5 * item_loss(albedo, train_set["albedo_t"][index].float() / 127.5 - 1, mask))
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(params, 1.0)
+        optimizer.step()
+        step += 1
+        with torch.no_grad():
+            decay = min(args.ema, (1 + step) / (10 + step))
+            for e, p in zip(ema, params):
+                e.lerp_(p.detach(), 1 - decay)
+        losses.append(loss.item())
+        if step % 20 == 0:
+            log(out, event="loss", step=step, loss=round(float(np.mean(losses)), 4), lr=lr,
+                seconds=round(time.time() - started, 1))
+            losses = []
+        if time.time() - last_val > args.val_every * 60 or time.time() - started >= budget:
+            last_val = time.time()
+            live = [p.detach().clone() for p in params]
+            with torch.no_grad():
+                for e, p in zip(ema, params):
+                    p.copy_(e)
+            score = scores(top, tokenizer, val, autocast)
+            value = score["relit"] + 0.5 * score["albedo"]
+            is_best = value > best["score"]
+            log(out, event="val", step=step, **score, best=is_best, seconds=round(time.time() - started, 1))
+            if is_best:
+                best = {"score": value, "step": step, **score}
+                export(top, dit, args.k, out)
+            with torch.no_grad():
+                for lv, p in zip(live, params):
+                    p.copy_(lv)
+    log(out, event="end", step=step, best=best)
+
+
+def export(top, dit, k: int, out: Path) -> None:
+    """OUT/model: the shipped folder with the DiT's blocks k.. and final layer from `top` (bf16, as shipped)."""
+    state = {name: t.detach().clone() for name, t in dit.state_dict().items()}
+    for i, block in enumerate(top.blocks):
+        for name, t in block.state_dict().items():
+            state[f"blocks.{k + i}.{name}"] = t.detach().clone()
+    for name, t in top.final_layer.state_dict().items():
+        state[f"final_layer.{name}"] = t.detach().clone()
+    folder = out / "model"
+    if folder.exists():
+        shutil.rmtree(folder)
+    shutil.copytree(MODEL, folder)
+    save_file({n: t.to(torch.bfloat16).contiguous() for n, t in state.items()}, str(folder / "dit.safetensors"))
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser()
+    parser.add_argument("mode", choices=["cache", "train"])
+    parser.add_argument("out")
+    parser.add_argument("--packs", nargs="*", default=[])
+    parser.add_argument("--val")
+    parser.add_argument("--items", type=int, default=4000)
+    parser.add_argument("--k", type=int, default=6)
+    parser.add_argument("--batch", type=int, default=16)
+    parser.add_argument("--chunk", type=int, default=512)
+    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--minutes", type=float, default=30)
+    parser.add_argument("--lr", type=float, default=1e-4)
+    parser.add_argument("--warmup", type=int, default=30)
+    parser.add_argument("--ema", type=float, default=0.995)
+    parser.add_argument("--val-every", type=float, default=5)
+    parser.add_argument("--init", help="a model folder whose DiT top to start from (default: the shipped one)")
+    args = parser.parse_args(argv)
+    (cache if args.mode == "cache" else train)(args)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
