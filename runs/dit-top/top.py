@@ -176,7 +176,8 @@ def load_chunks(out: Path, name: str) -> Chunks:
 
 
 def scores(top, tokenizer, val, autocast, batch=32) -> dict:
-    relit_p, albedo_p = [], []
+    """Protocol PSNR (relit, albedo) of the top's one-step frames on `val`, and the relit margin; batch even."""
+    relit_p, albedo_p, other_p = [], [], []
     for start in range(0, len(val), batch):
         part = slice(start, start + batch)
         tokens = val["tokens"][part]                                              # gathered outside autocast
@@ -190,7 +191,10 @@ def scores(top, tokenizer, val, autocast, batch=32) -> dict:
         r, a = hwc(relit), hwc(albedo)
         relit_p += [protocol_psnr(r[i:i + 1], rt[i:i + 1], masks[i:i + 1]) for i in range(len(masks))]
         albedo_p += [protocol_psnr(a[i:i + 1], at[i:i + 1], masks[i:i + 1]) for i in range(len(masks))]
-    return {"relit": round(float(np.mean(relit_p)), 4), "albedo": round(float(np.mean(albedo_p)), 4)}
+        # the probe-following margin: val holds both directions of each scene, in turn (item i's other light is i ^ 1)
+        other_p += [protocol_psnr(r[i:i + 1], rt[i ^ 1:(i ^ 1) + 1], masks[i:i + 1]) for i in range(len(masks))]
+    return {"relit": round(float(np.mean(relit_p)), 4), "albedo": round(float(np.mean(albedo_p)), 4),
+            "margin": round(float(np.mean(relit_p) - np.mean(other_p)), 4)}
 
 
 def train(args) -> None:
