@@ -12,7 +12,10 @@ each sample costing the top's share of a forward and backward: many times the sa
     (the best EMA by validation is written to OUT/model/, the shipped folder with its DiT's top replaced)
 
 The loss is the protocol's (refine.item_loss: scale-fitted log MSE on the mask) on the relit frame, plus
-half of it on the albedo, each decoded from x0 = x0_shipped + c_out·(F_new − F_shipped).
+half of it on the albedo, each decoded from x0 = x0_shipped + c_out·(F_new − F_shipped); `--margin W` adds
+W·(that relit loss − the relit loss against the scene under the other light), for which train needs the cache run's
+--packs, --items and --seed. Validation scores relit, albedo and the relit margin of the DiT alone; what it found
+through the whole pipeline (it does not carry): runs/dit-top/README.md.
 """
 from __future__ import annotations
 
@@ -213,11 +216,13 @@ def train(args) -> None:
     val = load_chunks(out, "val")
     train_set = load_chunks(out, "train")
     n = len(train_set)
+    other = other_targets(args, train_set) if args.margin else None
     log(out, event="start", init=str(args.init or MODEL), items=n, val_items=len(val), k=args.k, lr=args.lr, batch=args.batch,
-        params=sum(p.numel() for p in params), threads=args.threads)
+        params=sum(p.numel() for p in params), threads=args.threads, margin=args.margin, select_margin=args.select_margin)
     start_score = scores(top, tokenizer, val, autocast)
     log(out, event="val", step=0, **start_score)
-    best = {"score": start_score["relit"] + 0.5 * start_score["albedo"], "step": 0, **start_score}
+    value_of = lambda score: score["relit"] + 0.5 * score["albedo"] + args.select_margin * score["margin"]
+    best = {"score": value_of(start_score), "step": 0, **start_score}
     optimizer = torch.optim.AdamW(params, lr=args.lr, betas=(0.9, 0.99), weight_decay=0.0)
     started, step, last_val, losses = time.time(), 0, time.time(), []
     budget = args.minutes * 60
@@ -233,8 +238,10 @@ def train(args) -> None:
         x0 = train_set["x0"][index].float() + top.c_out * (f - train_set["f"][index].float())
         relit, albedo = frames(tokenizer, x0)
         mask = train_set["mask"][index]
-        loss = (item_loss(relit, train_set["relit_t"][index].float() / 127.5 - 1, mask)
-                + 0.5 * item_loss(albedo, train_set["albedo_t"][index].float() / 127.5 - 1, mask))
+        own = item_loss(relit, train_set["relit_t"][index].float() / 127.5 - 1, mask)
+        loss = own + 0.5 * item_loss(albedo, train_set["albedo_t"][index].float() / 127.5 - 1, mask)
+        if other is not None:                   # the margin: as near its own light's frame, as far from the other's
+            loss = loss + args.margin * (own - item_loss(relit, other[index].float() / 127.5 - 1, mask))
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         torch.nn.utils.clip_grad_norm_(params, 1.0)
@@ -256,7 +263,7 @@ def train(args) -> None:
                 for e, p in zip(ema, params):
                     p.copy_(e)
             score = scores(top, tokenizer, val, autocast)
-            value = score["relit"] + 0.5 * score["albedo"]
+            value = value_of(score)
             is_best = value > best["score"]
             log(out, event="val", step=step, **score, best=is_best, seconds=round(time.time() - started, 1))
             if is_best:
@@ -266,6 +273,20 @@ def train(args) -> None:
                 for lv, p in zip(live, params):
                     p.copy_(lv)
     log(out, event="end", step=step, best=best)
+
+
+def other_targets(args, train_set) -> torch.Tensor:
+    """uint8 [N,3,H,W]: each cached training item's scene under its *other* light, from the packs it was cached
+    from (--packs, --items and --seed as the cache run: the same draw of scenes and directions, checked)."""
+    pack = load_packs([Path(p) for p in args.packs])
+    g = torch.Generator().manual_seed(args.seed)
+    order = torch.randperm(len(pack["rgb"]), generator=g)[:args.items]
+    targets = torch.randint(0, 2, (len(pack["rgb"]),), generator=g)[order]
+    probe = torch.tensor([0, len(order) // 2, len(order) - 1])
+    if len(order) != len(train_set) or not torch.equal(pack["rgb"][order[probe], targets[probe]],
+                                                       train_set["relit_t"][probe]):
+        raise ValueError("--packs/--items/--seed do not give the draw the cache was made with")
+    return pack["rgb"][order, 1 - targets].contiguous()
 
 
 def export(top, dit, k: int, out: Path) -> None:
@@ -300,6 +321,9 @@ def main(argv=None) -> int:
     parser.add_argument("--warmup", type=int, default=30)
     parser.add_argument("--ema", type=float, default=0.995)
     parser.add_argument("--val-every", type=float, default=5)
+    parser.add_argument("--margin", type=float, default=0.0,
+                        help="train: weight of the margin term (own-light loss minus other-light loss; needs --packs)")
+    parser.add_argument("--select-margin", type=float, default=0.0, help="train: the margin's weight in the choice")
     parser.add_argument("--init", help="a model folder whose DiT top to start from (default: the shipped one)")
     args = parser.parse_args(argv)
     (cache if args.mode == "cache" else train)(args)
