@@ -38,7 +38,7 @@ from relight_core.dit import NUM_CLIPS
 from relight_core.precision import resolve_precision
 from relight_core.training.fast import make_batch, sample_relight
 from relight_core.training.pack import load_packs
-from relight_core.training.refine import item_loss
+from relight_core.training.refine import _hwc, item_loss
 from relight_core.evaluation.metrics import protocol_psnr
 
 MODEL = Path("models/default")
@@ -150,7 +150,7 @@ def frames(tokenizer, x0: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
 
 
 class Chunks:
-    """The cached chunks, memory-mapped (runs side by side share the page cache); `[key][index]` gathers."""
+    """The cached chunks, memory-mapped (runs side by side share the page cache); `gather` reads rows."""
 
     def __init__(self, out: Path, name: str):
         self.parts = [torch.load(p, weights_only=True, mmap=True) for p in sorted(out.glob(f"{name}-*.pt"))]
@@ -160,22 +160,13 @@ class Chunks:
     def __len__(self) -> int:
         return int(self.starts[-1])
 
-    def __getitem__(self, key: str):
-        chunks = self
-
-        class Gather:
-            def __getitem__(self, index):
-                if isinstance(index, slice):
-                    index = torch.arange(len(chunks))[index]
-                index = torch.as_tensor(index)
-                part = np.searchsorted(chunks.starts, index.numpy(), side="right") - 1
-                rows = [chunks.parts[k][key][int(i - chunks.starts[k])] for k, i in zip(part, index.numpy())]
-                return torch.stack(rows)
-        return Gather()
-
-
-def load_chunks(out: Path, name: str) -> Chunks:
-    return Chunks(out, name)
+    def gather(self, key: str, index) -> torch.Tensor:
+        """Rows `index` (a slice or indices) of `key`, stacked."""
+        if isinstance(index, slice):
+            index = torch.arange(len(self))[index]
+        index = torch.as_tensor(index).numpy()
+        part = np.searchsorted(self.starts, index, side="right") - 1
+        return torch.stack([self.parts[k][key][int(i - self.starts[k])] for k, i in zip(part, index)])
 
 
 def scores(top, tokenizer, val, autocast, batch=32) -> dict:
@@ -183,15 +174,14 @@ def scores(top, tokenizer, val, autocast, batch=32) -> dict:
     relit_p, albedo_p, other_p = [], [], []
     for start in range(0, len(val), batch):
         part = slice(start, start + batch)
-        tokens = val["tokens"][part]                                              # gathered outside autocast
+        tokens = val.gather("tokens", part)                                     # gathered outside autocast
         with torch.no_grad(), torch.autocast("cpu", dtype=torch.bfloat16, enabled=autocast):
             f = top(tokens)
-        x0 = val["x0"][part].float() + top.c_out * (f - val["f"][part].float())
+        x0 = val.gather("x0", part).float() + top.c_out * (f - val.gather("f", part).float())
         relit, albedo = frames(tokenizer, x0)
-        hwc = lambda x: ((x.permute(0, 2, 3, 1).numpy() + 1) / 2).astype(np.float32)
-        masks = val["mask"][part].numpy()
-        rt, at = val["relit_t"][part].permute(0, 2, 3, 1).numpy() / 255, val["albedo_t"][part].permute(0, 2, 3, 1).numpy() / 255
-        r, a = hwc(relit), hwc(albedo)
+        masks = val.gather("mask", part).numpy()
+        rt, at = _hwc(val.gather("relit_t", part)), _hwc(val.gather("albedo_t", part))
+        r, a = (((x.permute(0, 2, 3, 1).numpy() + 1) / 2).astype(np.float32) for x in (relit, albedo))
         relit_p += [protocol_psnr(r[i:i + 1], rt[i:i + 1], masks[i:i + 1]) for i in range(len(masks))]
         albedo_p += [protocol_psnr(a[i:i + 1], at[i:i + 1], masks[i:i + 1]) for i in range(len(masks))]
         # the probe-following margin: val holds both directions of each scene, in turn (item i's other light is i ^ 1)
@@ -213,8 +203,8 @@ def train(args) -> None:
     for p in params:
         p.requires_grad_(True)
     ema = [p.detach().clone() for p in params]
-    val = load_chunks(out, "val")
-    train_set = load_chunks(out, "train")
+    val = Chunks(out, "val")
+    train_set = Chunks(out, "train")
     n = len(train_set)
     other = other_targets(args, train_set) if args.margin else None
     log(out, event="start", init=str(args.init or MODEL), items=n, val_items=len(val), k=args.k, lr=args.lr, batch=args.batch,
@@ -232,14 +222,14 @@ def train(args) -> None:
         for group in optimizer.param_groups:
             group["lr"] = lr
         index = torch.randint(0, n, (args.batch,))
-        tokens = train_set["tokens"][index]                                       # gathered outside autocast
+        tokens = train_set.gather("tokens", index)                              # gathered outside autocast
         with torch.autocast("cpu", dtype=torch.bfloat16, enabled=autocast):
             f = top(tokens)
-        x0 = train_set["x0"][index].float() + top.c_out * (f - train_set["f"][index].float())
+        x0 = train_set.gather("x0", index).float() + top.c_out * (f - train_set.gather("f", index).float())
         relit, albedo = frames(tokenizer, x0)
-        mask = train_set["mask"][index]
-        own = item_loss(relit, train_set["relit_t"][index].float() / 127.5 - 1, mask)
-        loss = own + 0.5 * item_loss(albedo, train_set["albedo_t"][index].float() / 127.5 - 1, mask)
+        mask = train_set.gather("mask", index)
+        own = item_loss(relit, train_set.gather("relit_t", index).float() / 127.5 - 1, mask)
+        loss = own + 0.5 * item_loss(albedo, train_set.gather("albedo_t", index).float() / 127.5 - 1, mask)
         if other is not None:                   # the margin: as near its own light's frame, as far from the other's
             loss = loss + args.margin * (own - item_loss(relit, other[index].float() / 127.5 - 1, mask))
         optimizer.zero_grad(set_to_none=True)
@@ -284,7 +274,7 @@ def other_targets(args, train_set) -> torch.Tensor:
     targets = torch.randint(0, 2, (len(pack["rgb"]),), generator=g)[order]
     probe = torch.tensor([0, len(order) // 2, len(order) - 1])
     if len(order) != len(train_set) or not torch.equal(pack["rgb"][order[probe], targets[probe]],
-                                                       train_set["relit_t"][probe]):
+                                                       train_set.gather("relit_t", probe)):
         raise ValueError("--packs/--items/--seed do not give the draw the cache was made with")
     return pack["rgb"][order, 1 - targets].contiguous()
 
