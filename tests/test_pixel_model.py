@@ -93,6 +93,22 @@ def test_pack_round_trip(tmp_path):
     assert torch.allclose(pack["env"][1, 0], env, rtol=2e-3, atol=1e-3)     # stored as fp16
 
 
+def test_lossless_pack_holds_the_rendered_pixels(tmp_path):
+    from relight_core.data.files import read_image
+
+    root = write_pack_dataset(tmp_path / "data")
+    write_pack(root, "train", tmp_path / "jpeg.npz", lighting_size=8)
+    write_pack(root, "train", tmp_path / "png.npz", lighting_size=8, lossless=True)
+    jpeg, png = load_pack(tmp_path / "jpeg.npz"), load_pack(tmp_path / "png.npz")
+    scene = root / "train" / "scene_000002"
+    for stream, got_png, got_jpeg in (("rgb0", png["rgb"][2, 0], jpeg["rgb"][2, 0]),
+                                      ("albedo", png["albedo"][2], jpeg["albedo"][2])):
+        original = torch.from_numpy(np.round(read_image(scene / stream / "0000.png") * 255)).permute(2, 0, 1)
+        assert torch.equal(got_png.float(), original)                        # exactly what was rendered
+        assert not torch.equal(got_jpeg.float(), original)                   # which JPEG 92 is not
+    assert torch.equal(png["mask"], jpeg["mask"]) and torch.equal(png["env"], jpeg["env"])
+
+
 def test_several_packs_train_as_one_and_must_match(tmp_path, capsys):
     write_pack(write_pack_dataset(tmp_path / "a", scenes=3), "train", tmp_path / "a.npz", lighting_size=8)
     write_pack(write_pack_dataset(tmp_path / "b", scenes=2, seed=1), "train", tmp_path / "b.npz", lighting_size=8)

@@ -1,6 +1,7 @@
 """Image packs: a dataset split's still frames in one small file, for training anywhere.
 
-A pack holds, per scene, frame 0 under both illuminations and its albedo (JPEG quality 92, 4:4:4: ~38 dB), the
+A pack holds, per scene, frame 0 under both illuminations and its albedo (JPEG quality 92, 4:4:4: ~38 dB; or with
+`--lossless` PNG, the rendered pixels exactly, ~3× the size), the
 foreground mask (bit-packed) and both camera-frame probes already seen through the model's
 lighting grid (`lighting.downsample_panorama` to `lighting_size`², fp16). ~30 KB a 128² scene, so
 a few thousand scenes travel to a GPU machine in one file, and `load_pack` rebuilds the tensors
@@ -23,13 +24,18 @@ STREAMS = ("rgb0", "rgb1", "albedo")
 JPEG_QUALITY = 92
 
 
-def _encode_jpeg(rgb: np.ndarray) -> bytes:
-    """uint8 [H,W,3] RGB → JPEG bytes (quality 92, no chroma subsampling)."""
-    params = [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY, cv2.IMWRITE_JPEG_SAMPLING_FACTOR,
-              cv2.IMWRITE_JPEG_SAMPLING_FACTOR_444]
-    ok, buf = cv2.imencode(".jpg", np.ascontiguousarray(rgb[..., ::-1]), params)
+def _encode_jpeg(rgb: np.ndarray, lossless: bool = False) -> bytes:
+    """uint8 [H,W,3] RGB → JPEG bytes (quality 92, no chroma subsampling), or PNG bytes with `lossless`
+    (`_decode_jpeg` reads either). JPEG's error moves what a model trained on it sees: the shipped model relit
+    the first 8 test items 0.1–1.2 dB worse from their JPEG than from their PNG inputs (runs/dit-top/README.md)."""
+    if lossless:
+        ok, buf = cv2.imencode(".png", np.ascontiguousarray(rgb[..., ::-1]))
+    else:
+        params = [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY, cv2.IMWRITE_JPEG_SAMPLING_FACTOR,
+                  cv2.IMWRITE_JPEG_SAMPLING_FACTOR_444]
+        ok, buf = cv2.imencode(".jpg", np.ascontiguousarray(rgb[..., ::-1]), params)
     if not ok:
-        raise RuntimeError("JPEG encoding failed")
+        raise RuntimeError("image encoding failed")
     return buf.tobytes()
 
 
@@ -45,8 +51,9 @@ def _decode_jpeg(data: np.ndarray) -> np.ndarray:
 
 
 def write_pack(data: Path, split: str, out: Path, lighting_size: int = 32, limit: int | None = None,
-               frame: int = 0) -> int:
-    """Pack frame `frame` of every finished synthetic scene of `data/split`; returns the scene count."""
+               frame: int = 0, lossless: bool = False) -> int:
+    """Pack frame `frame` of every finished synthetic scene of `data/split` (as PNG with `lossless`); returns
+    the scene count."""
     from relight_core import lighting
     from relight_core.data.dataset import write_manifest
     from relight_core.data.files import read_exr, read_image
@@ -60,7 +67,7 @@ def write_pack(data: Path, split: str, out: Path, lighting_size: int = 32, limit
         root = split_dir / sample["path"]
         name = f"{frame:04d}"
         for stream in STREAMS:
-            blobs.append(_encode_jpeg(_uint8(read_image(root / stream / f"{name}.png"))))
+            blobs.append(_encode_jpeg(_uint8(read_image(root / stream / f"{name}.png")), lossless))
         mask = read_image(root / "mask" / f"{name}.png")
         masks.append(np.packbits(mask.reshape(mask.shape[0], mask.shape[1], -1)[..., 0].ravel() > 0.5))
         pans = torch.stack([torch.from_numpy(read_exr(root / f"env{light}" / f"{name}.exr")) for light in (0, 1)])
@@ -129,8 +136,9 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--out", type=Path, required=True)
     parser.add_argument("--lighting-size", type=int, default=32)
     parser.add_argument("--limit", type=int, default=None)
+    parser.add_argument("--lossless", action="store_true", help="PNG instead of JPEG 92: the rendered pixels exactly")
     args = parser.parse_args(argv)
-    count = write_pack(args.data, args.split, args.out, args.lighting_size, args.limit)
+    count = write_pack(args.data, args.split, args.out, args.lighting_size, args.limit, lossless=args.lossless)
     print(f"packed {count} scenes into {args.out} ({args.out.stat().st_size / 1e6:.1f} MB)")
 
 

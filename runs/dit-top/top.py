@@ -73,7 +73,7 @@ def cache(args) -> None:
     dit.register_forward_hook(net_hook)
 
     def run(pack, scenes, targets, name):
-        chunk = {"tokens": [], "f": [], "x0": [], "relit_t": [], "albedo_t": [], "mask": []}
+        chunk = {"tokens": [], "f": [], "x0": [], "relit_t": [], "albedo_t": [], "mask": [], "input": [], "env": []}
         started = time.time()
         for start in range(0, len(scenes), args.batch):
             s, t = scenes[start:start + args.batch], targets[start:start + args.batch]
@@ -87,6 +87,8 @@ def cache(args) -> None:
             chunk["relit_t"].append(pack["rgb"][s, t])                          # uint8 [B,3,H,W]
             chunk["albedo_t"].append(pack["albedo"][s])
             chunk["mask"].append(pack["mask"][s])
+            chunk["input"].append(pack["rgb"][s, 1 - t])                        # what the refiners see too
+            chunk["env"].append(torch.as_tensor(pack["env"])[s, t].float())     # the target's camera-frame probe
             done = start + len(s)
             if (done // args.batch) % 20 == 0 or done == len(scenes):
                 log(out, event="cache", name=name, done=done, of=len(scenes),
