@@ -8,7 +8,8 @@ training alike:
 * `auto` on a CPU is bf16 only where a bf16 matmul is *measured* faster than an fp32 one. On x86
   CPUs without AVX-512 (`torch.backends.cpu.get_cpu_capability()` reports AVX2 or less) there is no
   native bf16 — it runs ~80× slower than fp32 — so fp32 is picked at once, without measuring. Other
-  CPUs run a small one-off matmul micro-benchmark (well under a second), whose verdict is cached in
+  CPUs run a small one-off matmul micro-benchmark (well under a second; the dtypes take turns, each keeping its
+  best, so a moment of other load does not decide), whose verdict is cached in
   `~/.cache/unirelight-studio/precision.json` keyed by CPU model, torch version and thread count.
 
 The dtype weights are *stored* in (bf16 halves a shipped file) never decides the compute dtype.
@@ -94,8 +95,10 @@ def cpu_model() -> str:
 
 
 def cache_key() -> str:
-    """What the measured verdict depends on: the CPU, torch and the thread count."""
-    return f"{cpu_model()} | {cpu_capability()} | torch {torch.__version__} | {torch.get_num_threads()} threads"
+    """What the measured verdict depends on: the CPU, torch, the thread count and how it was measured (a verdict
+    of the one-turn-each measurement before `MEASURE_ROUNDS` is measured again)."""
+    return (f"{cpu_model()} | {cpu_capability()} | torch {torch.__version__} | {torch.get_num_threads()} threads"
+            f" | {MEASURE_ROUNDS} turns")
 
 
 def cache_path() -> Path:
@@ -126,9 +129,20 @@ def matmul_gflops(dtype: torch.dtype, n: int = MEASURE_SIZE, budget_s: float = M
     return 2 * n ** 3 / max(best, 1e-9) / 1e9
 
 
-def measure_cpu_matmul() -> dict[str, float]:
-    """{"fp32": GFLOP/s, "bf16": GFLOP/s} of the micro-benchmark on this CPU."""
-    return {"fp32": matmul_gflops(torch.float32), "bf16": matmul_gflops(torch.bfloat16)}
+MEASURE_ROUNDS = 3     # the two dtypes take turns this many times; each keeps its best
+
+
+def measure_cpu_matmul(rounds: int = MEASURE_ROUNDS) -> dict[str, float]:
+    """{"fp32": GFLOP/s, "bf16": GFLOP/s} of the micro-benchmark on this CPU: the dtypes take turns for
+    `rounds` rounds and each keeps its best, so a burst of other work during one dtype's turn does not decide
+    the verdict that gets cached (measured once on a 2-core AMD EPYC with AVX512-BF16 while a render held both
+    cores: one turn each gave fp32 187.7 and bf16 33.9 GFLOP/s, and fp32 was cached for 2 threads, against
+    bf16 ~2.4× faster on that CPU when idle)."""
+    best = {"fp32": 0.0, "bf16": 0.0}
+    for _ in range(rounds):
+        for name in best:
+            best[name] = max(best[name], matmul_gflops(DTYPES[name], budget_s=MEASURE_BUDGET_S / rounds))
+    return best
 
 
 def cpu_prefers_bf16() -> bool:

@@ -80,6 +80,23 @@ def test_auto_picks_bf16_where_measured_faster_and_measures_once_per_machine(fre
     assert len(calls) == 2 and len(json.loads(fresh_cache.read_text())) == 2
 
 
+def test_a_burst_of_load_during_one_turn_does_not_decide(monkeypatch):
+    # bf16 twice as fast, but other work takes the cores during its first turn (as a render did once)
+    rates = {"fp32": iter([100.0, 95.0, 100.0]), "bf16": iter([20.0, 210.0, 205.0])}
+    order = []
+
+    def gflops(dtype, **kwargs):
+        name = precision.precision_name(dtype)
+        order.append(name)
+        return next(rates[name])
+
+    monkeypatch.setattr(precision, "matmul_gflops", gflops)
+    measured = precision.measure_cpu_matmul(rounds=3)
+    assert measured == {"fp32": 100.0, "bf16": 210.0}
+    assert order == ["fp32", "bf16"] * 3                  # turns taken in turn, not one dtype's all at once
+    assert measured["bf16"] > precision.BF16_MARGIN * measured["fp32"]
+
+
 def test_bf16_just_a_little_faster_is_not_enough(fresh_cache, monkeypatch):
     monkeypatch.setattr(precision, "measure_cpu_matmul", _measured(fp32=100.0, bf16=105.0)[0])
     monkeypatch.setattr(precision, "cpu_capability", lambda: "AVX512")

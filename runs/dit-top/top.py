@@ -8,6 +8,8 @@ per item (on one noise draw, as the shipped sampler's seed), and only blocks K..
 each sample costing the top's share of a forward and backward: many times the samples a CPU can afford.
 
     cache: PYTHONPATH=. python runs/dit-top/top.py cache OUT --packs P1.npz ... --items N [--val VAL.npz]
+    (per item: the trunk's tokens, F, x0, the targets, the mask, and the input frame and target probe that
+    through.py's refiners need; packs made with `training.pack --lossless` give what evaluation gives)
     train: PYTHONPATH=. python runs/dit-top/top.py train OUT --minutes M [--lr 1e-4] [--batch 16] [--init DIR]
     (the best EMA by validation is written to OUT/model/, the shipped folder with its DiT's top replaced)
 
