@@ -136,8 +136,8 @@ def measure_cpu_matmul(rounds: int = MEASURE_ROUNDS) -> dict[str, float]:
     """{"fp32": GFLOP/s, "bf16": GFLOP/s} of the micro-benchmark on this CPU: the dtypes take turns for
     `rounds` rounds and each keeps its best, so a burst of other work during one dtype's turn does not decide
     the verdict that gets cached (measured once on a 2-core AMD EPYC with AVX512-BF16 while a render held both
-    cores: one turn each gave fp32 187.7 and bf16 33.9 GFLOP/s, and fp32 was cached for 2 threads, against
-    bf16 ~2.4× faster on that CPU when idle)."""
+    cores: one turn each gave fp32 187.7 and bf16 33.9 GFLOP/s, and fp32 was cached for 2 threads; idle, bf16
+    is 2.2× fp32 there: 436 against 197)."""
     best = {"fp32": 0.0, "bf16": 0.0}
     for _ in range(rounds):
         for name in best:

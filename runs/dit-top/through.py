@@ -11,8 +11,9 @@ averaged passes are the same function, smoothed), as does validation; the 400 te
 pipeline decide.
 
     PYTHONPATH=. python runs/dit-top/top.py cache OUT --packs P.npz --val VAL.npz --items N   (caches input, env)
-    PYTHONPATH=. python runs/dit-top/through.py OUT --minutes M [--lr 1e-4] [--batch 16] [--init DIR]
-    (the best EMA by validation of the pipeline's frames is written to OUT/model/)
+    PYTHONPATH=. python runs/dit-top/through.py OUT --minutes M [--lr 1e-4] [--refiner-lr 3e-5] [--init DIR]
+    (the best EMA by validation of the pipeline's frames is written to OUT/model/, with the refiners as trained
+    when --refiner-lr trains them)
 """
 from __future__ import annotations
 
@@ -25,10 +26,10 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from safetensors.torch import save_file
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from top import MODEL, Chunks, Top, export, frames, log  # noqa: E402
-from safetensors.torch import save_file  # noqa: E402
 
 from relight_core.checkpoint import load_model, load_refiner, resolve_model  # noqa: E402
 from relight_core.evaluation.metrics import protocol_psnr  # noqa: E402
