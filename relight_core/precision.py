@@ -10,7 +10,8 @@ training alike:
   native bf16 — it runs ~80× slower than fp32 — so fp32 is picked at once, without measuring. Other
   CPUs run a small one-off matmul micro-benchmark (well under a second; the dtypes take turns, each keeping its
   best, so a moment of other load does not decide), whose verdict is cached in
-  `~/.cache/unirelight-studio/precision.json` keyed by CPU model, torch version and thread count.
+  `~/.cache/unirelight-studio/precision.json` keyed by CPU model, torch version, thread count and the number of
+  turns.
 
 The dtype weights are *stored* in (bf16 halves a shipped file) never decides the compute dtype.
 """

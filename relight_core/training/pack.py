@@ -1,7 +1,7 @@
 """Image packs: a dataset split's still frames in one small file, for training anywhere.
 
 A pack holds, per scene, frame 0 under both illuminations and its albedo (JPEG quality 92, 4:4:4: ~38 dB; or with
-`--lossless` PNG, the rendered pixels exactly, ~3× the size), the
+`--lossless` PNG, the rendered pixels exactly, ~2.5× the size), the
 foreground mask (bit-packed) and both camera-frame probes already seen through the model's
 lighting grid (`lighting.downsample_panorama` to `lighting_size`², fp16). ~30 KB a 128² scene, so
 a few thousand scenes travel to a GPU machine in one file, and `load_pack` rebuilds the tensors
@@ -24,10 +24,10 @@ STREAMS = ("rgb0", "rgb1", "albedo")
 JPEG_QUALITY = 92
 
 
-def _encode_jpeg(rgb: np.ndarray, lossless: bool = False) -> bytes:
+def _encode_frame(rgb: np.ndarray, lossless: bool = False) -> bytes:
     """uint8 [H,W,3] RGB → JPEG bytes (quality 92, no chroma subsampling), or PNG bytes with `lossless`
-    (`_decode_jpeg` reads either). JPEG's error moves what a model trained on it sees: the shipped model relit
-    the first 8 test items 0.1–1.2 dB worse from their JPEG than from their PNG inputs (runs/dit-top/README.md)."""
+    (`_decode_frame` reads either). JPEG's error is not nothing to the model: the shipped one relit the first 80
+    test items 0.155 dB worse from their JPEG than from their PNG inputs (runs/dit-top/jpeg-inputs-40.txt)."""
     if lossless:
         ok, buf = cv2.imencode(".png", np.ascontiguousarray(rgb[..., ::-1]))
     else:
@@ -43,7 +43,7 @@ def _uint8(image01: np.ndarray) -> np.ndarray:
     return np.round(np.clip(image01, 0, 1) * 255).astype(np.uint8)
 
 
-def _decode_jpeg(data: np.ndarray) -> np.ndarray:
+def _decode_frame(data: np.ndarray) -> np.ndarray:
     image = cv2.imdecode(data, cv2.IMREAD_COLOR)
     if image is None:
         raise ValueError("a pack holds a corrupt JPEG; rebuild the pack")
@@ -67,7 +67,7 @@ def write_pack(data: Path, split: str, out: Path, lighting_size: int = 32, limit
         root = split_dir / sample["path"]
         name = f"{frame:04d}"
         for stream in STREAMS:
-            blobs.append(_encode_jpeg(_uint8(read_image(root / stream / f"{name}.png")), lossless))
+            blobs.append(_encode_frame(_uint8(read_image(root / stream / f"{name}.png")), lossless))
         mask = read_image(root / "mask" / f"{name}.png")
         masks.append(np.packbits(mask.reshape(mask.shape[0], mask.shape[1], -1)[..., 0].ravel() > 0.5))
         pans = torch.stack([torch.from_numpy(read_exr(root / f"env{light}" / f"{name}.exr")) for light in (0, 1)])
@@ -95,7 +95,7 @@ def load_pack(path: Path, device: str | torch.device = "cpu") -> dict[str, torch
     with np.load(path, allow_pickle=False) as z:
         jpeg, offsets = z["jpeg"], z["offsets"]
         height, width = (int(v) for v in z["size"])
-        images = np.stack([_decode_jpeg(jpeg[offsets[i]:offsets[i + 1]]) for i in range(len(offsets) - 1)])
+        images = np.stack([_decode_frame(jpeg[offsets[i]:offsets[i + 1]]) for i in range(len(offsets) - 1)])
         images = images.reshape(-1, len(STREAMS), height, width, 3)
         mask = np.unpackbits(z["mask"], axis=1)[:, :height * width].reshape(-1, height, width)
         out = {"env": torch.from_numpy(z["env"].astype(np.float32)), "names": list(z["names"]),
