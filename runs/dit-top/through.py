@@ -19,9 +19,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import math
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -29,7 +27,7 @@ import torch
 from safetensors.torch import save_file
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from top import MODEL, Chunks, Top, export, frames, log  # noqa: E402
+from top import MODEL, Chunks, Top, export, fit, frames, log  # noqa: E402
 
 from relight_core.checkpoint import load_model, load_refiner, resolve_model  # noqa: E402
 from relight_core.evaluation.metrics import protocol_psnr  # noqa: E402
@@ -121,8 +119,6 @@ def train(args) -> None:
         p.requires_grad_(True)
     groups = [{"params": params, "base": args.lr}] + ([{"params": refiner_params, "base": args.refiner_lr}]
                                                         if refiner_params else [])
-    params = params + refiner_params
-    ema = [p.detach().clone() for p in params]
     val, train_set = Chunks(out, "val"), Chunks(out, "train")
     if "input" not in val.parts[0]:
         raise ValueError(f"{out}'s cache has no input frames and probes: make it again with this top.py's cache")
@@ -130,59 +126,21 @@ def train(args) -> None:
     log(out, event="start", mode="through", init=str(args.init or MODEL), items=n, val_items=len(val), lr=args.lr,
         refiner_lr=args.refiner_lr,
         batch=args.batch, threads=args.threads, select_margin=args.select_margin, autocast=autocast)
-    value_of = lambda score: score["relit"] + 0.5 * score["albedo"] + args.select_margin * score["margin"]
-    start_score = scores(top, tokenizer, refiners, val, autocast)
-    log(out, event="val", step=0, **start_score)
-    best = {"score": value_of(start_score), "step": 0, **start_score}
-    optimizer = torch.optim.AdamW(groups, lr=args.lr, betas=(0.9, 0.99), weight_decay=0.0)
-    started, step, last_val, losses = time.time(), 0, time.time(), []
-    budget = args.minutes * 60
-    while time.time() - started < budget:
-        progress = (time.time() - started) / budget
-        factor = min(1.0, (step + 1) / args.warmup) * (0.1 + 0.9 * 0.5 * (1 + math.cos(math.pi * progress)))
-        for group in optimizer.param_groups:
-            group["lr"] = group["base"] * factor
-        lr = args.lr * factor
-        index = torch.randint(0, n, (args.batch,))
+
+    def step_loss(index: torch.Tensor) -> torch.Tensor:
         relit, albedo = final_frames(top, tokenizer, refiners, train_set, index, autocast, clamp=False)
         mask = train_set.gather("mask", index)
-        loss = item_loss(relit, _signed(train_set.gather("relit_t", index)), mask) \
+        return item_loss(relit, _signed(train_set.gather("relit_t", index)), mask) \
             + 0.5 * item_loss(albedo, _signed(train_set.gather("albedo_t", index)), mask)
-        optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        torch.nn.utils.clip_grad_norm_(params, 1.0)
-        optimizer.step()
-        step += 1
-        with torch.no_grad():
-            decay = min(args.ema, (1 + step) / (10 + step))
-            for e, p in zip(ema, params):
-                e.lerp_(p.detach(), 1 - decay)
-        losses.append(loss.item())
-        if step % 10 == 0:
-            log(out, event="loss", step=step, loss=round(float(np.mean(losses)), 4), lr=lr,
-                seconds=round(time.time() - started, 1))
-            losses = []
-        if time.time() - last_val > args.val_every * 60 or time.time() - started >= budget:
-            last_val = time.time()
-            live = [p.detach().clone() for p in params]
-            with torch.no_grad():
-                for e, p in zip(ema, params):
-                    p.copy_(e)
-            score = scores(top, tokenizer, refiners, val, autocast)
-            value = value_of(score)
-            is_best = value > best["score"]
-            log(out, event="val", step=step, **score, best=is_best, seconds=round(time.time() - started, 1))
-            if is_best:
-                best = {"score": value, "step": step, **score}
-                export(top, dit, args.k, out)
-                if refiner_params:                                  # the refiners as trained, beside the DiT
-                    for slot, refiner in (("refiner", refiners.albedo_refiner), ("relit_refiner", refiners.relit_refiner)):
-                        save_file({k: v.detach().to(torch.bfloat16).contiguous() for k, v in refiner.state_dict().items()},
-                                  str(out / "model" / REFINER_SLOTS[slot]))
-            with torch.no_grad():
-                for lv, p in zip(live, params):
-                    p.copy_(lv)
-    log(out, event="end", step=step, best=best)
+
+    def save() -> None:
+        export(top, dit, args.k, out)
+        if refiner_params:                                                    # the refiners as trained, beside the DiT
+            for slot, refiner in (("refiner", refiners.albedo_refiner), ("relit_refiner", refiners.relit_refiner)):
+                save_file({k: v.detach().to(torch.bfloat16).contiguous() for k, v in refiner.state_dict().items()},
+                          str(out / "model" / REFINER_SLOTS[slot]))
+
+    fit(args, out, groups, n, step_loss, lambda: scores(top, tokenizer, refiners, val, autocast), save, log_every=10)
 
 
 def main(argv=None) -> int:

@@ -206,26 +206,14 @@ def train(args) -> None:
     params = [p for m in (top.blocks, top.final_layer) for p in m.parameters()]
     for p in params:
         p.requires_grad_(True)
-    ema = [p.detach().clone() for p in params]
     val = Chunks(out, "val")
     train_set = Chunks(out, "train")
     n = len(train_set)
     other = other_targets(args, train_set) if args.margin else None
     log(out, event="start", init=str(args.init or MODEL), items=n, val_items=len(val), k=args.k, lr=args.lr, batch=args.batch,
         params=sum(p.numel() for p in params), threads=args.threads, margin=args.margin, select_margin=args.select_margin)
-    start_score = scores(top, tokenizer, val, autocast)
-    log(out, event="val", step=0, **start_score)
-    value_of = lambda score: score["relit"] + 0.5 * score["albedo"] + args.select_margin * score["margin"]
-    best = {"score": value_of(start_score), "step": 0, **start_score}
-    optimizer = torch.optim.AdamW(params, lr=args.lr, betas=(0.9, 0.99), weight_decay=0.0)
-    started, step, last_val, losses = time.time(), 0, time.time(), []
-    budget = args.minutes * 60
-    while time.time() - started < budget:
-        progress = (time.time() - started) / budget
-        lr = args.lr * min(1.0, (step + 1) / args.warmup) * (0.1 + 0.9 * 0.5 * (1 + math.cos(math.pi * progress)))
-        for group in optimizer.param_groups:
-            group["lr"] = lr
-        index = torch.randint(0, n, (args.batch,))
+
+    def step_loss(index: torch.Tensor) -> torch.Tensor:
         tokens = train_set.gather("tokens", index)                              # gathered outside autocast
         with torch.autocast("cpu", dtype=torch.bfloat16, enabled=autocast):
             f = top(tokens)
@@ -236,6 +224,34 @@ def train(args) -> None:
         loss = own + 0.5 * item_loss(albedo, train_set.gather("albedo_t", index).float() / 127.5 - 1, mask)
         if other is not None:                   # the margin: as near its own light's frame, as far from the other's
             loss = loss + args.margin * (own - item_loss(relit, other[index].float() / 127.5 - 1, mask))
+        return loss
+
+    fit(args, out, [{"params": params, "base": args.lr}], n, step_loss,
+        lambda: scores(top, tokenizer, val, autocast), lambda: export(top, dit, args.k, out))
+
+
+def fit(args, out: Path, groups: list[dict], n: int, step_loss, validate, save, log_every: int = 20) -> dict:
+    """The training loop of top.py and through.py: AdamW over `groups` (each {"params": [...], "base": its lr}),
+    warm-up over args.warmup steps then a cosine to a tenth over args.minutes, gradients clipped to 1, an EMA
+    (args.ema) of every parameter; `step_loss(index)` is the loss of training items `index` (args.batch drawn of
+    `n`). At the start, every args.val_every minutes and at the end the EMA weights are put in place and
+    `validate()` scores them ({"relit", "albedo", "margin"}); the best by relit + ½ albedo + args.select_margin ×
+    margin is `save()`d. Logs to OUT/log.jsonl; returns the best."""
+    params = [p for group in groups for p in group["params"]]
+    ema = [p.detach().clone() for p in params]
+    value_of = lambda score: score["relit"] + 0.5 * score["albedo"] + args.select_margin * score["margin"]
+    start_score = validate()
+    log(out, event="val", step=0, **start_score)
+    best = {"score": value_of(start_score), "step": 0, **start_score}
+    optimizer = torch.optim.AdamW(groups, lr=args.lr, betas=(0.9, 0.99), weight_decay=0.0)
+    started, step, last_val, losses = time.time(), 0, time.time(), []
+    budget = args.minutes * 60
+    while time.time() - started < budget:
+        progress = (time.time() - started) / budget
+        factor = min(1.0, (step + 1) / args.warmup) * (0.1 + 0.9 * 0.5 * (1 + math.cos(math.pi * progress)))
+        for group in optimizer.param_groups:
+            group["lr"] = group["base"] * factor
+        loss = step_loss(torch.randint(0, n, (args.batch,)))
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         torch.nn.utils.clip_grad_norm_(params, 1.0)
@@ -246,8 +262,8 @@ def train(args) -> None:
             for e, p in zip(ema, params):
                 e.lerp_(p.detach(), 1 - decay)
         losses.append(loss.item())
-        if step % 20 == 0:
-            log(out, event="loss", step=step, loss=round(float(np.mean(losses)), 4), lr=lr,
+        if step % log_every == 0:
+            log(out, event="loss", step=step, loss=round(float(np.mean(losses)), 4), lr=args.lr * factor,
                 seconds=round(time.time() - started, 1))
             losses = []
         if time.time() - last_val > args.val_every * 60 or time.time() - started >= budget:
@@ -256,17 +272,18 @@ def train(args) -> None:
             with torch.no_grad():
                 for e, p in zip(ema, params):
                     p.copy_(e)
-            score = scores(top, tokenizer, val, autocast)
+            score = validate()
             value = value_of(score)
             is_best = value > best["score"]
             log(out, event="val", step=step, **score, best=is_best, seconds=round(time.time() - started, 1))
             if is_best:
                 best = {"score": value, "step": step, **score}
-                export(top, dit, args.k, out)
+                save()
             with torch.no_grad():
                 for lv, p in zip(live, params):
                     p.copy_(lv)
     log(out, event="end", step=step, best=best)
+    return best
 
 
 def other_targets(args, train_set) -> torch.Tensor:
