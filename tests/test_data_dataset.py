@@ -109,3 +109,24 @@ def test_cli_registers_render_data(tmp_path):
         args.func(args)
     with pytest.raises(SystemExit):
         parser.parse_args(["render-data", "--out", str(tmp_path), "--scenes", "0"])
+
+
+def test_extended_probes_render_and_a_folder_keeps_one_probe_library(tmp_path):
+    from relight_core.data.generate import check_library
+
+    config = RenderConfig(out=tmp_path, scenes=2, frames=1, size=16, spp=1, workers=1, probes="extended")
+    assert not render_dataset(config, progress=False).failures
+    meta = json.loads((tmp_path / "train" / "scene_000001" / "meta.json").read_text())
+    assert meta["probe_library"] == "extended"
+    assert meta["probes"] == ["file:extra/lobby", "file:extra/apartment"]  # seed 0's scene 1 in this library
+    assert len(RelightDataset(tmp_path, "train", clip_frames=1)) == 4  # two scenes × two directions
+    # A folder of one library is not resumed with the other (nor a classic one, whose meta names none, with it).
+    with pytest.raises(InputError, match="holds scenes of the extended probe library"):
+        render_dataset(RenderConfig(out=tmp_path, scenes=3, frames=1, size=16, spp=1, workers=1), progress=False)
+    assert not (tmp_path / "train" / "scene_000002").exists()
+    classic = tmp_path / "classic" / "train" / "scene_000000"
+    classic.mkdir(parents=True)
+    (classic / "meta.json").write_text('{"kind": "synthetic", "frames": 1}')
+    check_library(RenderConfig(out=tmp_path / "classic"), classic.parent)
+    with pytest.raises(InputError, match="holds scenes of the classic probe library"):
+        check_library(config, classic.parent)

@@ -104,3 +104,41 @@ def test_closed_meshes_wind_outwards_so_their_fronts_face_the_camera():
             assert volume > 0, (name, seed)
             face_normals = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
             assert np.mean(np.einsum("ij,ij->i", face_normals, mesh.normals[mesh.faces].mean(1)) > 0) > 0.99
+
+
+def test_the_extended_library_lights_train_scenes_with_the_extra_hdris_and_changes_nothing_else():
+    # classic is what every dataset of a seed was drawn from before libraries existed (these are seed 0's draws)
+    assert [p.source for p in sample_scene(0, "train", 0, 1).probes] == ["file:studio", "procedural:night"]
+    assert sample_scene(0, "train", 5, 9) == sample_scene(0, "train", 5, 9, "classic")
+    used = {library: set() for library in probes.PROBE_LIBRARIES}
+    for library in used:
+        for index in range(120):
+            used[library] |= {p.source for p in sample_scene(2, "train", index, 1, library).probes}
+    extra = {f"file:extra/{n}" for n in probes.EXTRA_PROBES}
+    assert extra <= used["extended"] and not extra & used["classic"]
+    assert not {f"file:{n}" for n in probes.TEST_PROBES} & used["extended"]
+    # The held-out split is the same scenes in both, and the extra night is drawn as dark as the bundled one.
+    assert all(sample_scene(0, "test", i, 1, "extended") == sample_scene(0, "test", i, 1) for i in range(20))
+    nights = [p for i in range(200) for p in sample_scene(3, "train", i, 1, "extended").probes
+              if p.source == "file:extra/night"]
+    assert nights and all(0.15 <= p.exposure <= 0.4 for p in nights)
+    with pytest.raises(ValueError, match="probe library"):
+        sample_scene(0, "train", 0, 1, "everything")
+
+
+def test_the_extra_hdris_load_and_none_is_a_held_out_probe_turned():
+    def coarse(name):
+        probe = lighting.load_probe(probes.ENVMAP_DIR / f"{name}.exr")
+        assert probe.shape[1] == 2 * probe.shape[0] and probe.shape[2] == 3
+        assert torch.isfinite(probe).all() and (probe >= 0).all()
+        small = torch.nn.functional.adaptive_avg_pool2d(probe.permute(2, 0, 1)[None], (16, 32))[0]
+        return torch.log1p(small).numpy()
+
+    held_out = [coarse(n) for n in probes.TEST_PROBES]
+    for name in probes.EXTRA_PROBES:
+        extra = coarse(f"extra/{name}")
+        assert probes.white_patch_radiance(probes.load_choice(
+            probes.ProbeChoice(f"file:extra/{name}", 0, 0.0, 0.7))) == pytest.approx(0.7, rel=1e-3)
+        for other in held_out:  # the best correlation over the 32 yaws of the coarse grid
+            best = max(np.corrcoef(np.roll(extra, k, axis=2).ravel(), other.ravel())[0, 1] for k in range(32))
+            assert best < 0.75, name

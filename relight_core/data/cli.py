@@ -37,6 +37,9 @@ def add_data_commands(subparsers) -> None:
                    default=0.25, help="with --device cuda: each scene's share of a GPU (default 0.25: 4 at once)")
     p.add_argument("--minutes", type=finite_float(0.0, 1e6, low_open=True, what="minutes"), default=None,
                    help="start no scene after this many minutes; the same command renders the rest later")
+    p.add_argument("--probes", choices=("classic", "extended"), default="classic",
+                   help="probe library: classic (default; the scenes every earlier dataset of a seed has) or extended "
+                        "(the train split also lit by the 11 HDRIs of envmaps/extra/; the test split is the same)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=_render_data)
 
@@ -71,7 +74,8 @@ def _render_data(args) -> int:
     _check_address(args.ray_address)
     config = RenderConfig(out=args.out, scenes=args.scenes, frames=args.frames, size=args.size, spp=args.spp,
                           seed=args.seed, workers=args.workers, split=args.split, address=args.ray_address,
-                          device=args.device, gpus_per_worker=args.gpus_per_worker, minutes=args.minutes)
+                          device=args.device, gpus_per_worker=args.gpus_per_worker, minutes=args.minutes,
+                          probes=args.probes)
     return report(render_dataset(config, progress=not args.quiet), "scene")
 
 

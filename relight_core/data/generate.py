@@ -16,6 +16,7 @@ for bit, and each scene's meta.json names the variant it was rendered with.
 from __future__ import annotations
 
 import dataclasses
+import json
 import os
 import sys
 import time
@@ -29,6 +30,7 @@ from relight_core.batch.engine import (DONE, FAILED, UnitResult, engine, locked,
 from relight_core.batch.samples import DataSummary, Sample, run_samples
 from relight_core.colour import linear_to_srgb
 from relight_core.data.dataset import is_finished, write_frame, write_meta
+from relight_core.data.probes import PROBE_LIBRARIES
 from relight_core.data.render import (CPU_VARIANT, RENDER_DEVICES, SceneRenderer, init_mitsuba, render_device,
                                      stratified_spp)
 from relight_core.data.scenes import SPLITS, SceneSpec, camera_to_world, probe_yaw, sample_scene
@@ -52,6 +54,7 @@ class RenderConfig:
     device: str = "cpu"         # cpu (llvm_ad_rgb: the same bytes every run), cuda (cuda_ad_rgb) or auto
     gpus_per_worker: float = 0.25  # with cuda: each scene task's share of a GPU (4 scenes at once on one)
     minutes: float | None = None   # start no scene after this many minutes (None: render them all)
+    probes: str = "classic"        # probe library (probes.PROBE_LIBRARIES); "extended": more HDRIs for train
 
 
 def scene_dir(config: RenderConfig, index: int) -> Path:
@@ -65,8 +68,11 @@ def frame_seed(spec: SceneSpec, frame: int) -> int:
                .generate_state(1)[0] & 0x7FFFFFFF)
 
 
-def render_scene(spec: SceneSpec, size: int, spp: int, out_dir: Path, variant: str = CPU_VARIANT) -> None:
-    """Render every frame of a scene under both probes and write it in the dataset format."""
+def render_scene(spec: SceneSpec, size: int, spp: int, out_dir: Path, variant: str = CPU_VARIANT,
+                 library: str = "classic") -> None:
+    """Render every frame of a scene under both probes and write it in the dataset format; a scene of a probe
+    library other than "classic" names it in meta.json's "probe_library" (a classic scene's files are the same
+    bytes as before libraries existed)."""
     out_dir.mkdir(parents=True, exist_ok=True)
     with SceneRenderer(spec, size, spp) as renderer:
         for t in range(spec.frames):
@@ -77,8 +83,9 @@ def render_scene(spec: SceneSpec, size: int, spp: int, out_dir: Path, variant: s
             albedo, mask = renderer.render_aovs(t, seed)  # shared by both lights: same geometry
             write_frame(out_dir, "albedo", t, linear_to_srgb(albedo))
             write_frame(out_dir, "mask", t, mask)
+    extra = {} if library == "classic" else {"probe_library": library}
     write_meta(out_dir, {
-        "kind": "synthetic", "frames": spec.frames, "height": size, "width": size, "lights": 2,
+        **extra, "kind": "synthetic", "frames": spec.frames, "height": size, "width": size, "lights": 2,
         "motion": list(spec.motion), "probes": [p.source for p in spec.probes],
         "render": {"renderer": "mitsuba3", "variant": variant, "spp": stratified_spp(spp), "max_depth": 3},
         "camera_to_world": [camera_to_world(spec, t).round(6).tolist() for t in range(spec.frames)],
@@ -100,13 +107,29 @@ def render_unit(config: RenderConfig, index: int) -> UnitResult:
         except (ImportError, RuntimeError) as exc:  # a cluster node whose GPU Mitsuba cannot use
             raise InputError(f"Mitsuba could not select {config.device}'s variant on this worker "
                              f"({' '.join(str(exc).split())[:160]}); render with --device cpu.") from None
-        spec = sample_scene(config.seed, config.split, index, config.frames)
-        render_scene(spec, config.size, config.spp, scene_dir(config, index), variant)
+        spec = sample_scene(config.seed, config.split, index, config.frames, config.probes)
+        render_scene(spec, config.size, config.spp, scene_dir(config, index), variant, config.probes)
         status, error = DONE, ""
     except Exception as exc:  # a full disk, a bug in one scene: this scene's result
         stop_if_interrupted(exc)  # but a SIGTERM inside Mitsuba's render stops the run
         status, error = FAILED, sentence(exc, "scene")
     return UnitResult(name, status, time.perf_counter() - wall, error, time.process_time() - cpu)
+
+
+def scene_library(folder: Path) -> str:
+    """The probe library a finished scene was drawn from (meta.json's "probe_library"; absent: classic)."""
+    return json.loads((folder / "meta.json").read_text()).get("probe_library", "classic")
+
+
+def check_library(config: RenderConfig, split_dir: Path) -> None:
+    """One probe library a split folder: resuming a folder with another library would mix two datasets."""
+    if config.probes not in PROBE_LIBRARIES:
+        raise InputError(f"--probes {config.probes} is not one of {', '.join(PROBE_LIBRARIES)}.")
+    finished = next((d for d in sorted(split_dir.glob("scene_*")) if is_finished(d)), None)
+    if finished is not None and scene_library(finished) != config.probes:
+        raise InputError(f"{split_dir} holds scenes of the {scene_library(finished)} probe library and this run "
+                         f"asks for {config.probes}; render it into another --out folder, or with --probes "
+                         f"{scene_library(finished)}.")
 
 
 def render_dataset(config: RenderConfig, progress: bool = True) -> DataSummary:
@@ -127,6 +150,7 @@ def render_dataset(config: RenderConfig, progress: bool = True) -> DataSummary:
     split_dir = config.out / config.split
     split_dir.mkdir(parents=True, exist_ok=True)
     with locked(split_dir, ".render-data.lock", "render-data run", "--out or --split"):
+        check_library(config, split_dir)
         todo = [Sample(scene_dir(config, i), scene_dir(config, i).name, (i,))
                 for i in range(config.scenes) if not is_finished(scene_dir(config, i))]
         desc = f"render-data {config.split}"

@@ -23,6 +23,14 @@ BUNDLED_PROCEDURAL = ("procedural_sky_noon", "procedural_studio", "procedural_sk
 # The held-out test split lights its scenes only with these; train never sees them.
 TEST_PROBES = ("forest", "sunset", "procedural_sky_dusk", "procedural_gels")
 PROCEDURAL_KINDS = ("sun_sky", "studio", "gels", "night")
+# Eleven more real HDRIs in envmaps/extra/ (CC0, envmaps/extra/README.md), for the train split of the "extended"
+# library only: none is within a 0.75 correlation of a held-out probe (or of a bundled train one) at any yaw.
+EXTRA_PROBES = ("apartment", "bridge", "esplanade", "hall", "lab", "lobby", "night", "sky", "studio", "warehouse",
+                "workshop")
+# "classic": the probes every dataset before 2026-12-07 was drawn from (its seeds give the same scenes as then);
+# "extended": classic + the extra HDRIs for the train split (the test split is the same in both).
+PROBE_LIBRARIES = ("classic", "extended")
+DARK_SOURCES = ("file:night", "file:extra/night", "procedural:night")  # their exposure is drawn lower
 
 
 @dataclass(frozen=True)
@@ -35,17 +43,22 @@ class ProbeChoice:
     exposure: float     # radiance of a white Lambertian patch under the normalised probe
 
 
-def probe_names(split: str) -> list[str]:
-    """Probe sources available to a split ('train' or 'test')."""
+def probe_names(split: str, library: str = "classic") -> list[str]:
+    """Probe sources available to a split ('train' or 'test') in a library ('classic' or 'extended')."""
+    if library not in PROBE_LIBRARIES:
+        raise ValueError(f"unknown probe library {library!r}; one of {', '.join(PROBE_LIBRARIES)}")
     files = [n for n in POLYHAVEN + BUNDLED_PROCEDURAL if (n in TEST_PROBES) == (split == "test")]
     sources = [f"file:{n}" for n in files]
     if split == "train":
         sources += [f"procedural:{k}" for k in PROCEDURAL_KINDS]
+        if library == "extended":
+            sources += [f"file:extra/{n}" for n in EXTRA_PROBES]
     return sources
 
 
 def load_choice(choice: ProbeChoice, height: int = 128) -> np.ndarray:
-    """The probe of a choice, exposure-normalised, float32 [h, 2h, 3] (files keep their size)."""
+    """The probe of a choice, exposure-normalised, float32 [h, 2h, 3] (files keep their size; "file:extra/NAME"
+    is envmaps/extra/NAME.exr)."""
     kind, name = choice.source.split(":", 1)
     if kind == "file":
         probe = lighting.load_probe(ENVMAP_DIR / f"{name}.exr").numpy()

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from relight_core.data.meshes import MESHES, build_mesh
-from relight_core.data.probes import ProbeChoice, probe_names
+from relight_core.data.probes import DARK_SOURCES, ProbeChoice, probe_names
 from relight_core.data.textures import TEXTURE_KINDS, TextureSpec
 
 SPLITS = ("train", "test")
@@ -81,8 +81,10 @@ class SceneSpec:
     camera: CameraSpec
 
 
-def sample_scene(seed: int, split: str, index: int, frames: int) -> SceneSpec:
-    """A random scene, identical for identical (seed, split, index, frames)."""
+def sample_scene(seed: int, split: str, index: int, frames: int, library: str = "classic") -> SceneSpec:
+    """A random scene, identical for identical (seed, split, index, frames, library); `library` is the probe
+    library (probes.PROBE_LIBRARIES: "extended" draws the train split's probes from more HDRIs, nothing else
+    changes)."""
     rng = np.random.default_rng([seed, SPLITS.index(split), index])
     textures = TEXTURE_KINDS[split]
     motion: tuple[str, ...] = ()
@@ -102,7 +104,7 @@ def sample_scene(seed: int, split: str, index: int, frames: int) -> SceneSpec:
             objects.append(placed)
 
     ground = _sample_material(rng, textures, allow_special=False, textured_p=0.75)
-    names = probe_names(split)
+    names = probe_names(split, library)
     picked = rng.choice(len(names), size=2, replace=False)
     probes = tuple(_sample_probe(rng, names[int(i)]) for i in picked)
 
@@ -224,7 +226,7 @@ def _midpoint(obj: ObjectSpec) -> np.ndarray:
 
 
 def _sample_probe(rng: np.random.Generator, source: str) -> ProbeChoice:
-    dark = source in ("file:night", "procedural:night")
+    dark = source in DARK_SOURCES
     low, high = (0.15, 0.4) if dark else (0.4, 1.0)
     return ProbeChoice(source=source, seed=int(rng.integers(2**31)), rotation=float(rng.uniform(0, 360)),
                        exposure=float(math.exp(rng.uniform(math.log(low), math.log(high)))))
