@@ -31,8 +31,9 @@ def report(name, a, b):
     for key in ("relit", "albedo", "margin"):
         d = by_scene(b[key] - a[key])
         se = d.std(ddof=1) / np.sqrt(len(d))
+        ratio = f"{d.mean() / se:+.1f} SE" if se > 0 else "the same on every scene"
         parts.append(f"{key} {a[key].mean():.3f} → {b[key].mean():.3f} ({d.mean():+.3f} ± {se:.3f}, "
-                     f"{int((d > 0).sum())}/{len(d)} scenes up, {d.mean() / se:+.1f} SE)")
+                     f"{int((d > 0).sum())}/{len(d)} scenes up, {ratio})")
     print("\n  ".join(parts))
 
 
