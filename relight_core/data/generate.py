@@ -126,10 +126,10 @@ def check_library(config: RenderConfig, split_dir: Path) -> None:
     if config.probes not in PROBE_LIBRARIES:
         raise InputError(f"--probes {config.probes} is not one of {', '.join(PROBE_LIBRARIES)}.")
     finished = next((d for d in sorted(split_dir.glob("scene_*")) if is_finished(d)), None)
-    if finished is not None and scene_library(finished) != config.probes:
-        raise InputError(f"{split_dir} holds scenes of the {scene_library(finished)} probe library and this run "
-                         f"asks for {config.probes}; render it into another --out folder, or with --probes "
-                         f"{scene_library(finished)}.")
+    held = scene_library(finished) if finished is not None else config.probes
+    if held != config.probes:
+        raise InputError(f"{split_dir} holds scenes of the {held} probe library and this run asks for "
+                         f"{config.probes}; render it into another --out folder, or with --probes {held}.")
 
 
 def render_dataset(config: RenderConfig, progress: bool = True) -> DataSummary:
