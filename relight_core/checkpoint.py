@@ -48,6 +48,8 @@ class ModelSpec:
     size: int = 848                      # default working resolution (long side, pixels)
     steps: int = 35                      # default sampling steps
     sampler: str = "res2ab"              # default sampler
+    final_denoise: bool = True           # the clean-up network call at σ_min after the last step (released
+                                         # inference); False: the schedule ends at 0 (diffusion.sampling_sigmas)
     precision: str = "auto"              # compute precision: auto | fp32 | bf16 | fp16 (precision.py)
     trained: bool = True                 # False for a preset with random weights
     lighting_size: int | None = None     # probes seen through a size² panorama (lighting.lowpass_panorama)

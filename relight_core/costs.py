@@ -12,6 +12,7 @@ import torch
 
 from relight_core.arguments import MAX_ENSEMBLE
 from relight_core.chunking import plan_chunks
+from relight_core.diffusion import network_calls
 from relight_core.devices import free_memory, gb
 from relight_core.dit import NUM_CLIPS
 from relight_core.errors import InputError
@@ -49,7 +50,8 @@ class CostModel:
         tokens = NUM_CLIPS * t * (height // self.frame_multiple) * (width // self.frame_multiple)
         per_eval = self._seconds_per_eval_at(tokens)
         overhead = (self._overhead_per_pixel or 0.0) * num_frames * height * width  # load, light, decode
-        return len(chunks) * (steps + 1) * members * per_eval + overhead
+        calls = network_calls(steps, self.spec.final_denoise, self.spec.sampler)
+        return len(chunks) * calls * members * per_eval + overhead
 
     def warm_up(self) -> float:
         """Two small real runs (a grey image at the model's size up to 256 px, one step): the first pays

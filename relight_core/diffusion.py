@@ -3,8 +3,10 @@
 A *denoiser* is any callable `denoiser(x, sigma, **extra) -> x0` with `sigma` a [B] tensor; the
 samplers know nothing else about the model. Wrappers compose: `EDMPrecond` turns a raw network
 into a denoiser, `guided` adds classifier-free guidance, `ConditionedDenoiser` pins the given
-(condition) clips. Every sampler ends with one clean x0 evaluation at the last σ, as the released
-Cosmos sampler does, and reports each evaluation through `callback` — previews live there.
+(condition) clips. A schedule that ends at σ_min (`get_sigmas_karras`) ends with one more clean x0
+evaluation there, as the released Cosmos sampler does; one that ends at 0 (`sampling_sigmas(...,
+final_denoise=False)`, Karras et al. 2022, Alg. 1) lands its last step on the x0 of that step's evaluation
+and needs no clean-up call. Every evaluation is reported through `callback` — previews live there.
 """
 
 from __future__ import annotations
@@ -67,6 +69,27 @@ def get_sigmas_karras(n: int, sigma_min: float = 0.002, sigma_max: float = 80.0,
     return (inv_max + ramp * (inv_min - inv_max)) ** rho
 
 
+def sampling_sigmas(steps: int, final_denoise: bool = True, sigma_min: float = 0.002,
+                    sigma_max: float = 80.0) -> torch.Tensor:
+    """The σ a sampler walks for `steps` steps. With `final_denoise` (the released inference) the n + 1
+    Karras σ down to σ_min, after which the sampler evaluates once more at σ_min to clean x0: n + 1
+    network calls. Without it n Karras σ down to σ_min and then 0, the last step landing on its
+    evaluation's x0 (EDM's own schedule): n calls. For one step that is a single call at σ_max, whose
+    x0 the clean-up call at σ_min would change only by c_out(σ_min) ≈ 0.002 of the network's output."""
+    if steps < 1:
+        raise ValueError(f"sampling takes at least one step, not {steps}")
+    if final_denoise:
+        return get_sigmas_karras(steps, sigma_min, sigma_max)
+    return torch.cat([get_sigmas_karras(steps - 1, sigma_min, sigma_max), torch.zeros(1, dtype=torch.float64)])
+
+
+def network_calls(steps: int, final_denoise: bool = True, sampler: str = "res2ab") -> int:
+    """Denoiser evaluations of one sampling run of `steps` steps (no guidance): one a step (res2ab, euler) or
+    two (heun, whose last step to 0 is one), and the clean-up call with `final_denoise`."""
+    per_step = 2 if sampler == "heun" else 1
+    return per_step * steps + 1 if final_denoise else per_step * steps - (per_step - 1)
+
+
 def sample_training_sigma(batch_size: int, p_mean: float = 0.0, p_std: float = 1.0,
                           generator: torch.Generator | None = None, device=None) -> torch.Tensor:
     """[B] training noise levels, ln σ ~ N(p_mean, p_std²) (EDM log-normal)."""
@@ -101,6 +124,11 @@ def edm_loss(denoised: torch.Tensor, target: torch.Tensor, sigma: torch.Tensor,
 #                                    Samplers                                   #
 #################################################################################
 
+def _total(sigmas: torch.Tensor, steps: int) -> int:
+    """Evaluations of a one-call-a-step sampler: one a step, and the clean-up call unless the schedule ends at 0."""
+    return steps + 1 if float(sigmas[-1]) > 0 else steps
+
+
 def _evaluate(denoiser, x, sigma, extra_args, callback, i, total):
     """One denoiser call at scalar σ, reported to `callback`."""
     sigma_b = x.new_full((x.shape[0],), float(sigma))
@@ -113,27 +141,33 @@ def _evaluate(denoiser, x, sigma, extra_args, callback, i, total):
 @torch.no_grad()
 def sample_euler(denoiser: Denoiser, x: torch.Tensor, sigmas: torch.Tensor,
                  extra_args: dict | None = None, callback: Callable | None = None) -> torch.Tensor:
-    """Euler on the probability-flow ODE (Karras et al. 2022, Alg. 1 without churn), then clean x0."""
+    """Euler on the probability-flow ODE (Karras et al. 2022, Alg. 1 without churn), then clean x0
+    (no clean-up call where the schedule ends at 0: the last step lands on x0)."""
     extra_args = extra_args or {}
-    steps = len(sigmas) - 1
+    steps, total = len(sigmas) - 1, _total(sigmas, len(sigmas) - 1)
     for i in range(steps):
         sigma, sigma_next = float(sigmas[i]), float(sigmas[i + 1])
-        denoised = _evaluate(denoiser, x, sigma, extra_args, callback, i, steps + 1)
+        denoised = _evaluate(denoiser, x, sigma, extra_args, callback, i, total)
+        if sigma_next == 0:
+            return denoised
         d = (x - denoised) / sigma                                       # dx/dσ
         x = x + d * (sigma_next - sigma)
-    return _evaluate(denoiser, x, sigmas[-1], extra_args, callback, steps, steps + 1)
+    return _evaluate(denoiser, x, sigmas[-1], extra_args, callback, steps, total)
 
 
 @torch.no_grad()
 def sample_heun(denoiser: Denoiser, x: torch.Tensor, sigmas: torch.Tensor,
                 extra_args: dict | None = None, callback: Callable | None = None) -> torch.Tensor:
-    """Heun's 2nd-order method (Karras et al. 2022, Alg. 2 without churn), then clean x0."""
+    """Heun's 2nd-order method (Karras et al. 2022, Alg. 2 without churn), then clean x0 (where the
+    schedule ends at 0 its last step is Euler's, landing on x0, as in Alg. 2)."""
     extra_args = extra_args or {}
     steps = len(sigmas) - 1
-    total = 2 * steps + 1
+    total = 2 * steps + 1 if float(sigmas[-1]) > 0 else 2 * steps - 1
     for i in range(steps):
         sigma, sigma_next = float(sigmas[i]), float(sigmas[i + 1])
         denoised = _evaluate(denoiser, x, sigma, extra_args, callback, 2 * i, total)
+        if sigma_next == 0:
+            return denoised
         d = (x - denoised) / sigma
         x_euler = x + d * (sigma_next - sigma)
         denoised_next = _evaluate(denoiser, x_euler, sigma_next, extra_args, callback, 2 * i + 1, total)
@@ -158,13 +192,16 @@ def sample_res2ab(denoiser: Denoiser, x: torch.Tensor, sigmas: torch.Tensor,
     Exponential integrator in data-prediction form with λ = −ln σ and step h = λ_next − λ:
     x_next = e^{−h}·x + h·(b1·x0 + b2·x0_prev), c2 = (λ_prev − λ)/h, b2 = φ2(−h)/c2,
     b1 = φ1(−h) − b2. The first step, with no history, is the exact-x0 Euler step (b1 = φ1, b2 = 0).
+    A step to σ = 0 (h → ∞) lands on its evaluation's x0, and no clean-up call follows.
     """
     extra_args = extra_args or {}
-    steps = len(sigmas) - 1
+    steps, total = len(sigmas) - 1, _total(sigmas, len(sigmas) - 1)
     previous = None                                                   # (x0, σ) of the last step
     for i in range(steps):
         sigma, sigma_next = float(sigmas[i]), float(sigmas[i + 1])
-        denoised = _evaluate(denoiser, x, sigma, extra_args, callback, i, steps + 1)
+        denoised = _evaluate(denoiser, x, sigma, extra_args, callback, i, total)
+        if sigma_next == 0:                                           # h → ∞: x lands on x0
+            return denoised
         h = math.log(sigma / sigma_next)
         if previous is None:
             x = math.exp(-h) * x + h * _phi1(-h) * denoised
@@ -175,7 +212,7 @@ def sample_res2ab(denoiser: Denoiser, x: torch.Tensor, sigmas: torch.Tensor,
             b1 = _phi1(-h) - b2
             x = math.exp(-h) * x + h * (b1 * denoised + b2 * denoised_prev)
         previous = (denoised, sigma)
-    return _evaluate(denoiser, x, sigmas[-1], extra_args, callback, steps, steps + 1)
+    return _evaluate(denoiser, x, sigmas[-1], extra_args, callback, steps, total)
 
 
 SAMPLERS: dict[str, Callable[..., torch.Tensor]] = {
@@ -202,7 +239,9 @@ class ConditionedDenoiser:
     the input is added back to x0 (`residual_base`): EDM on relit − input and albedo − input.
     `residual_gain` (relit, albedo) scales the offset x0 of each generated clip before the input is
     added back: a calibration of a model whose offsets overshoot (`training.calibrate`); (1, 1) in
-    training, and for a one-step sampler exactly input + gain · (the network's offset).
+    training. A one-step schedule that ends at 0 gives exactly input + gain · (the network's offset); the
+    clean-up call at σ_min of the released schedule applies the gain once more (input + gain² · offset,
+    to c_out(σ_min) ≈ 0.002 of the network's output).
     """
 
     def __init__(self, denoiser: Denoiser,

@@ -33,7 +33,7 @@ from relight_core import lighting, temporal
 from relight_core.checkpoint import ModelSpec, load_model, load_refiner, resolve_model
 from relight_core.chunking import crossfade_weights, pad_to_valid, plan_chunks, stitch
 from relight_core.costs import CostModel
-from relight_core.diffusion import SAMPLERS, ConditionedDenoiser, EDMPrecond, get_sigmas_karras, guided
+from relight_core.diffusion import SAMPLERS, ConditionedDenoiser, EDMPrecond, guided, network_calls, sampling_sigmas
 from relight_core.dit import LIGHTING_KEYS, NUM_CLIPS, network, pack_lighting
 from relight_core.errors import InputError
 from relight_core.precision import autocast, precision_name, resolve_precision
@@ -110,8 +110,10 @@ class Relighter(CostModel):
         rotations = lighting.frame_rotations(num_frames, request.rotation, request.rotate_light, request.sweep)
         probe = self._prepared_probe(request)
         members = self.members(request.ensemble)
-        sigmas = get_sigmas_karras(steps, sigma_min=0.002, sigma_max=80.0).to(self.device)
-        evals_per_chunk = steps + 1 if request.guidance == 0 else 2 * (steps + 1)
+        sigmas = sampling_sigmas(steps, self.spec.final_denoise).to(self.device)
+        guidance_calls = 1 if request.guidance == 0 else 2    # the unconditional call beside each with guidance
+        per_step = guidance_calls * (2 if sampler_name == "heun" else 1)
+        evals_per_chunk = guidance_calls * network_calls(steps, self.spec.final_denoise, sampler_name)
 
         relit_out = np.zeros_like(frames)
         albedo_out = np.zeros_like(frames)
@@ -168,7 +170,8 @@ class Relighter(CostModel):
                     eta = elapsed / evals_done * (total_evals - evals_done)
                     relit_p, albedo_p = self._preview(info["denoised"], _t, height, width)
                     step = min(evals_done - _index * evals_per_chunk, evals_per_chunk)
-                    emit(Progress(step, evals_per_chunk, _index, len(chunks), relit_p, albedo_p, eta, steps))
+                    emit(Progress(step, evals_per_chunk, _index, len(chunks), relit_p, albedo_p, eta, steps,
+                                  per_step))
                     if request.should_stop is not None and request.should_stop():
                         raise Stopped
                     network_started = time.perf_counter()

@@ -57,21 +57,24 @@ class Progress:
     """One denoiser evaluation done."""
 
     evaluation: int           # 1-based network evaluation count within the chunk
-    evaluations: int          # network evaluations per chunk: steps + 1, twice that with guidance
+    evaluations: int          # network evaluations per chunk: steps + 1 (steps for a model whose schedule
+                              # ends at 0: ModelSpec.final_denoise), twice that with guidance
     chunk: int                # 0-based
     num_chunks: int
     relit_preview: np.ndarray   # [H,W,3] in [0,1], cheap linear decode of the current x0
     albedo_preview: np.ndarray
     eta_s: float              # seconds left for the whole request
     steps: int = 0            # the sampling steps asked for (0: one per evaluation)
+    per_step: int = 0         # network evaluations a step: 1, 2 with guidance or heun, 4 with both (0: from
+                              # evaluations and steps, for a one-call-a-step schedule with the clean-up call)
 
     @property
     def step(self) -> int:
-        """The sampling step (1 … steps) this evaluation belongs to, as a person counts them: the
+        """The sampling step (1 … steps) this evaluation belongs to, as a person counts them: a
         final clean-x0 evaluation completes the last step."""
         if self.steps <= 0:
             return self.evaluation
-        per_step = max(1, self.evaluations // (self.steps + 1))  # 1, or 2 with guidance
+        per_step = self.per_step or max(1, self.evaluations // (self.steps + 1))
         return min(self.steps, -(-self.evaluation // per_step))
 
 

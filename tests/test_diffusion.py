@@ -6,8 +6,8 @@ import pytest
 import torch
 
 from relight_core.diffusion import (
-    SAMPLERS, ConditionedDenoiser, EDMPrecond, edm_loss, edm_scalings, get_sigmas_karras, guided,
-    sample_euler, sample_heun, sample_res2ab, sample_training_sigma,
+    SAMPLERS, ConditionedDenoiser, EDMPrecond, edm_loss, edm_scalings, get_sigmas_karras, guided, network_calls,
+    sample_euler, sample_heun, sample_res2ab, sample_training_sigma, sampling_sigmas,
 )
 
 
@@ -126,13 +126,71 @@ def test_sampler_call_count_and_callback(name, evals):
     denoiser = Counting(lambda x, sigma, **_: torch.zeros_like(x))
     reports = []
     SAMPLERS[name](denoiser, torch.randn(2, 3), get_sigmas_karras(steps), callback=reports.append)
-    assert len(denoiser.calls) == evals * steps + 1
+    assert len(denoiser.calls) == evals * steps + 1 == network_calls(steps, sampler=name)
     assert len(reports) == len(denoiser.calls)
     assert [r["i"] for r in reports] == list(range(len(reports)))
     assert all(r["total"] == len(reports) for r in reports)
     assert set(reports[0]) == {"i", "total", "sigma", "x", "denoised"}
     assert reports[0]["sigma"] == pytest.approx(80.0)
     assert reports[-1]["sigma"] == pytest.approx(0.002)  # the final clean x0 at the last σ
+
+
+def test_a_schedule_without_the_clean_up_call_ends_at_zero():
+    torch.testing.assert_close(sampling_sigmas(1, final_denoise=False), torch.tensor([80.0, 0.0], dtype=torch.float64))
+    with_call, without = sampling_sigmas(6), sampling_sigmas(6, final_denoise=False)
+    torch.testing.assert_close(with_call, get_sigmas_karras(6))
+    assert len(without) == 7 and without[-1] == 0 and without[-2] == pytest.approx(0.002)
+    torch.testing.assert_close(without[:-1], get_sigmas_karras(5))
+    assert (network_calls(6), network_calls(6, final_denoise=False)) == (7, 6)
+    with pytest.raises(ValueError):
+        sampling_sigmas(0, final_denoise=False)
+
+
+@pytest.mark.parametrize("name, calls", [("euler", 5), ("res2ab", 5), ("heun", 9)])
+def test_samplers_land_on_the_last_x0_where_the_schedule_ends_at_zero(name, calls):
+    # x0 moves with σ so that "the last evaluation's x0" and "one more call at σ_min" differ
+    denoiser = Counting(lambda x, sigma, **_: 0.1 * x + sigma.view(-1, 1))
+    reports = []
+    x = 80.0 * torch.randn(2, 3, generator=torch.Generator().manual_seed(3))
+    out = SAMPLERS[name](denoiser, x, sampling_sigmas(5, final_denoise=False), callback=reports.append)
+    assert len(denoiser.calls) == len(reports) == calls == network_calls(5, final_denoise=False, sampler=name)
+    assert all(r["total"] == calls for r in reports) and [r["i"] for r in reports] == list(range(calls))
+    assert all(r["sigma"] > 0 for r in reports)                 # the network never sees σ = 0
+    assert torch.equal(out, reports[-1]["denoised"])
+    assert reports[-1]["sigma"] == pytest.approx(0.002)
+
+
+@pytest.mark.parametrize("sampler", [sample_euler, sample_heun, sample_res2ab])
+def test_samplers_without_the_clean_up_call_still_converge(sampler):
+    mu, s = 0.4, 0.5
+    x = 80.0 * torch.randn(64, dtype=torch.float64, generator=torch.Generator().manual_seed(1))
+    exact = gaussian_exact(x, mu, s, 80.0, 0.0)
+    errors = [float((sampler(gaussian_denoiser(mu, s), x, sampling_sigmas(n, final_denoise=False)) - exact).abs().max())
+              for n in (8, 32, 128)]
+    assert errors[0] > errors[1] > errors[2]
+    assert errors[2] < 0.05
+
+
+def test_one_step_residual_gain_applies_once_without_the_clean_up_call_and_twice_with_it():
+    condition, mask = _conditioned_setup()
+    offset = 0.3 * torch.randn(1, 16, 6, 2, 2, generator=torch.Generator().manual_seed(4))
+    net = EDMPrecond(lambda x_in, c_noise, **_: offset / 0.5)    # F such that x0 ≈ offset at σ = 80
+    gain = (0.8, 0.5)
+    x = 80.0 * torch.randn(1, 16, 6, 2, 2, generator=torch.Generator().manual_seed(5))
+    base = condition[:, :, :2].repeat(1, 1, 3, 1, 1)
+
+    def sample(final_denoise, gains):
+        den = ConditionedDenoiser(net, condition, mask, residual=True, residual_gain=gains)
+        return sample_res2ab(den, x, sampling_sigmas(1, final_denoise))
+
+    x0_80 = EDMPrecond(lambda x_in, c_noise, **_: offset / 0.5)(x - base, torch.tensor([80.0]))
+    once = sample(False, gain)
+    for clip, g in ((slice(2, 4), gain[0]), (slice(4, 6), gain[1])):
+        torch.testing.assert_close(once[:, :, clip], base[:, :, clip] + g * x0_80[:, :, clip])   # exactly
+    twice = sample(True, gain)
+    squared = sample(False, tuple(g * g for g in gain))
+    torch.testing.assert_close(twice[:, :, 2:], squared[:, :, 2:], atol=1e-2, rtol=0)   # c_out(σ_min)·F apart
+    assert (twice[:, :, 4:] - once[:, :, 4:]).abs().max() > 0.05                        # not the same gain
 
 
 @pytest.mark.parametrize("sampler", [sample_euler, sample_heun, sample_res2ab])

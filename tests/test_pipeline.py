@@ -102,6 +102,31 @@ def test_guidance_doubles_the_evaluations(relighter, probe):
     assert [(p.evaluation, p.evaluations, p.step) for p in progress] == [(2, 6, 1), (4, 6, 2), (6, 6, 2)]
 
 
+def test_a_model_without_the_clean_up_call_makes_one_call_a_step_and_counts_its_steps(probe):
+    from dataclasses import replace
+
+    relighter = awake(Relighter.load("tiny", device="cpu"))
+    with_call = relighter.estimate_seconds(1, 32, 48, steps=3)
+    relighter.spec = replace(relighter.spec, final_denoise=False)
+    relighter._overhead_per_pixel = 0.0
+    without_overhead = relighter.estimate_seconds(1, 32, 48, steps=3)
+    relighter.spec = replace(relighter.spec, final_denoise=True)
+    assert relighter.estimate_seconds(1, 32, 48, steps=3) == pytest.approx(4 / 3 * without_overhead)
+    assert with_call > without_overhead
+    relighter.spec = replace(relighter.spec, final_denoise=False)
+    events = _events(relighter, RelightRequest(_frames(), probe=probe, steps=3, seed=1))
+    progress = [e for e in events if isinstance(e, Progress)]
+    assert [(p.evaluation, p.evaluations, p.step) for p in progress] == [(1, 3, 1), (2, 3, 2), (3, 3, 3)]
+    assert events[-1].result.info["evaluations"] == 3 and progress[-1].eta_s == pytest.approx(0.0, abs=1e-6)
+    guided = [e for e in _events(relighter, RelightRequest(_frames(), probe=probe, steps=2, guidance=1.5))
+              if isinstance(e, Progress)]
+    assert [(p.evaluation, p.evaluations, p.step) for p in guided] == [(2, 4, 1), (4, 4, 2)]
+    heun = [e for e in _events(relighter, RelightRequest(_frames(), probe=probe, steps=3, sampler="heun"))
+            if isinstance(e, Progress)]                 # two calls a step, one for the last step to 0
+    assert [(p.evaluation, p.evaluations, p.step) for p in heun] == [(1, 5, 1), (2, 5, 1), (3, 5, 2), (4, 5, 2),
+                                                                     (5, 5, 3)]
+
+
 def test_probe_rotation_changes_the_result(relighter, probe):
     a = relighter.relight(RelightRequest(_frames(), probe=probe, steps=2, rotation=0.0))
     b = relighter.relight(RelightRequest(_frames(), probe=probe, steps=2, rotation=90.0))

@@ -919,6 +919,34 @@ def test_the_dits_outputs_for_training_average_the_models_shifted_copies_as_the_
         refine.cached_outputs(path, one, pack, items[:1], log=lambda m: None)
 
 
+def test_the_dits_outputs_for_training_take_the_residual_gain_as_often_as_the_relighter_does(tmp_path):
+    """A one-step run applies the albedo gain at each network call: once where the schedule ends at 0
+    (`final_denoise` false, the shipped model), twice with the clean-up call at σ_min; `dit_outputs` too, so
+    that a refiner trains on the frames it is given in use."""
+    from relight_core.checkpoint import save_model
+
+    root = write_pack_dataset(tmp_path / "data", scenes=1)
+    write_pack(root, "train", tmp_path / "p.npz", lighting_size=8)
+    pack = refine.load_packs([tmp_path / "p.npz"])
+    items = [(0, 0, 0), (0, 1, 0)]
+    spec, dit, tok = residual_model()
+    with torch.no_grad():
+        dit.final_layer.linear.weight.normal_(std=0.2)    # a clear albedo offset for the gain to scale
+    source = pack["rgb"][[0, 0], [1, 0]].numpy().astype(float)
+    offsets = {}
+    for final in (False, True):
+        for gain in (1.0, 0.5):
+            model = save_model(tmp_path / f"m-{final}-{gain}", replace(spec, final_denoise=final,
+                                                                       residual_gain=(1.0, gain)), dit, tok)
+            out = refine.dit_outputs(model, pack, items, log=lambda m: None)
+            offsets[final, gain] = out["albedo"].astype(float) - source
+    for final, power in ((False, 1), (True, 2)):
+        full, scaled = offsets[final, 1.0], offsets[final, 0.5]
+        inside = (np.abs(full) > 20) & (np.abs(full) < 230)   # not clipped at 0 or 255 either way
+        assert inside.mean() > 0.2
+        np.testing.assert_allclose(scaled[inside], 0.5 ** power * full[inside], atol=1.5)
+
+
 def test_a_model_folder_from_a_refiner_run_keeps_how_the_model_ran_that_slot_not_its_strength(tmp_path):
     model, run = tmp_path / "model", tmp_path / "run"
     model.mkdir()

@@ -196,7 +196,7 @@ class _SigmaSweep:
         t = clean.shape[2] // 3
         noise = torch.randn(clean.shape, generator=torch.Generator().manual_seed(self.seed)).to(x)
         frames = self.item.input.shape[0]
-        for sigma in sigmas.tolist():
+        for sigma in [s for s in sigmas.tolist() if s > 0]:    # a schedule's final 0 is no noise level
             x0 = denoiser(clean + sigma * noise, x.new_full((x.shape[0],), sigma), **(extra_args or {}))
             record = {"sigma": sigma}
             for name, third, truth in (("relit", 1, self.item.target), ("albedo", 2, self.item.albedo)):

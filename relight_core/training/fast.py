@@ -44,7 +44,7 @@ from safetensors.torch import load_file, save_file
 from relight_core import lighting
 from relight_core.checkpoint import CONFIG_FILE, DIT_FILE, ModelSpec
 from relight_core.colour import linear_to_srgb, srgb_to_linear
-from relight_core.diffusion import ConditionedDenoiser, EDMPrecond, get_sigmas_karras, sample_res2ab
+from relight_core.diffusion import ConditionedDenoiser, EDMPrecond, sample_res2ab, sampling_sigmas
 from relight_core.dit import DiTConfig, JointDiT, pack_lighting
 from relight_core.devices import resolve_device
 from relight_core.errors import InputError
@@ -220,8 +220,9 @@ def light_mix(batch: int, share: float, generator: torch.Generator, device: torc
 
 @torch.no_grad()
 def sample_relight(dit: JointDiT, batch: dict, steps: int, seed: int = 0, autocast: bool = True,
-                   residual: bool = False) -> torch.Tensor:
-    """Default-mode sampling (input → relit + albedo) as `Relighter` runs it; x0 [B,C,3,h,w]."""
+                   residual: bool = False, final_denoise: bool = True) -> torch.Tensor:
+    """Default-mode sampling (input → relit + albedo) as `Relighter` runs it (no residual gain; the
+    schedule of `diffusion.sampling_sigmas(steps, final_denoise)`); x0 [B,C,3,h,w]."""
     inp = batch["input"]
     b, _, t = inp.shape[:3]
     condition = torch.cat([inp, torch.zeros_like(inp), torch.zeros_like(inp)], dim=2)
@@ -230,7 +231,7 @@ def sample_relight(dit: JointDiT, batch: dict, steps: int, seed: int = 0, autoca
     denoiser = ConditionedDenoiser(EDMPrecond(partial(network, dit)), condition, mask, seed=seed, residual=residual)
     generator = torch.Generator(device=inp.device).manual_seed(seed)
     noise = torch.randn(condition.shape, generator=generator, device=inp.device)
-    sigmas = get_sigmas_karras(steps).to(inp.device)
+    sigmas = sampling_sigmas(steps, final_denoise).to(inp.device)
     with torch.autocast(inp.device.type, dtype=torch.bfloat16, enabled=autocast):
         return sample_res2ab(lambda x, s, **kw: denoiser(x, s, lighting=batch["lighting"]),
                              noise * sigmas[0], sigmas).float()

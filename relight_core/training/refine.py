@@ -117,10 +117,13 @@ def dit_outputs(model: Path, pack: dict, items: list[tuple[int, int, int]], batc
         for _, shift in variants:
             inputs = source.roll(shift, dims=(-2, -1))
             x0 = sample_relight(dit, {**data, "input": tokenizer.encode(inputs)}, spec.steps, autocast=autocast,
-                                residual=True)
+                                residual=True, final_denoise=spec.final_denoise)
             for clip, gain in ((1, spec.residual_gain[0]), (2, spec.residual_gain[1])):
                 frames = tokenizer.decode(x0[:, :, clip * t:(clip + 1) * t].float())[:, :, 0]
-                frames = inputs[:, :, 0] + gain * (frames - inputs[:, :, 0])  # the gain Relighter's denoiser applies
+                # the gain Relighter's denoiser applies at each call of a one-step run: once where the
+                # schedule ends at 0, twice with the clean-up call at σ_min (ModelSpec.final_denoise)
+                gain = gain ** 2 if spec.final_denoise else gain
+                frames = inputs[:, :, 0] + gain * (frames - inputs[:, :, 0])
                 entries[clip].append(frames.clamp(-1, 1).permute(0, 2, 3, 1).cpu().numpy())
         for clip, out in ((1, relit), (2, albedo)):
             mean = torch.from_numpy(np.ascontiguousarray(copies_mean(np.stack(entries[clip]), variants, token)))
