@@ -83,10 +83,15 @@ def sampling_sigmas(steps: int, final_denoise: bool = True, sigma_min: float = 0
     return torch.cat([get_sigmas_karras(steps - 1, sigma_min, sigma_max), torch.zeros(1, dtype=torch.float64)])
 
 
+def calls_per_step(sampler: str = "res2ab") -> int:
+    """Denoiser evaluations a step of `sampler` makes (no guidance): two for heun, one for the others."""
+    return 2 if sampler == "heun" else 1
+
+
 def network_calls(steps: int, final_denoise: bool = True, sampler: str = "res2ab") -> int:
-    """Denoiser evaluations of one sampling run of `steps` steps (no guidance): one a step (res2ab, euler) or
-    two (heun, whose last step to 0 is one), and the clean-up call with `final_denoise`."""
-    per_step = 2 if sampler == "heun" else 1
+    """Denoiser evaluations of one sampling run of `steps` steps (no guidance): `calls_per_step` a step (a
+    heun step to 0 makes one), and the clean-up call with `final_denoise`."""
+    per_step = calls_per_step(sampler)
     return per_step * steps + 1 if final_denoise else per_step * steps - (per_step - 1)
 
 
@@ -124,9 +129,9 @@ def edm_loss(denoised: torch.Tensor, target: torch.Tensor, sigma: torch.Tensor,
 #                                    Samplers                                   #
 #################################################################################
 
-def _total(sigmas: torch.Tensor, steps: int) -> int:
-    """Evaluations of a one-call-a-step sampler: one a step, and the clean-up call unless the schedule ends at 0."""
-    return steps + 1 if float(sigmas[-1]) > 0 else steps
+def _total(sigmas: torch.Tensor, sampler: str) -> int:
+    """The evaluations `sampler` makes on `sigmas`: the clean-up call unless the schedule ends at 0."""
+    return network_calls(len(sigmas) - 1, float(sigmas[-1]) > 0, sampler)
 
 
 def _evaluate(denoiser, x, sigma, extra_args, callback, i, total):
@@ -144,7 +149,7 @@ def sample_euler(denoiser: Denoiser, x: torch.Tensor, sigmas: torch.Tensor,
     """Euler on the probability-flow ODE (Karras et al. 2022, Alg. 1 without churn), then clean x0
     (no clean-up call where the schedule ends at 0: the last step lands on x0)."""
     extra_args = extra_args or {}
-    steps, total = len(sigmas) - 1, _total(sigmas, len(sigmas) - 1)
+    steps, total = len(sigmas) - 1, _total(sigmas, "euler")
     for i in range(steps):
         sigma, sigma_next = float(sigmas[i]), float(sigmas[i + 1])
         denoised = _evaluate(denoiser, x, sigma, extra_args, callback, i, total)
@@ -161,8 +166,7 @@ def sample_heun(denoiser: Denoiser, x: torch.Tensor, sigmas: torch.Tensor,
     """Heun's 2nd-order method (Karras et al. 2022, Alg. 2 without churn), then clean x0 (where the
     schedule ends at 0 its last step is Euler's, landing on x0, as in Alg. 2)."""
     extra_args = extra_args or {}
-    steps = len(sigmas) - 1
-    total = 2 * steps + 1 if float(sigmas[-1]) > 0 else 2 * steps - 1
+    steps, total = len(sigmas) - 1, _total(sigmas, "heun")
     for i in range(steps):
         sigma, sigma_next = float(sigmas[i]), float(sigmas[i + 1])
         denoised = _evaluate(denoiser, x, sigma, extra_args, callback, 2 * i, total)
@@ -195,7 +199,7 @@ def sample_res2ab(denoiser: Denoiser, x: torch.Tensor, sigmas: torch.Tensor,
     A step to σ = 0 (h → ∞) lands on its evaluation's x0, and no clean-up call follows.
     """
     extra_args = extra_args or {}
-    steps, total = len(sigmas) - 1, _total(sigmas, len(sigmas) - 1)
+    steps, total = len(sigmas) - 1, _total(sigmas, "res2ab")
     previous = None                                                   # (x0, σ) of the last step
     for i in range(steps):
         sigma, sigma_next = float(sigmas[i]), float(sigmas[i + 1])

@@ -33,7 +33,8 @@ from relight_core import lighting, temporal
 from relight_core.checkpoint import ModelSpec, load_model, load_refiner, resolve_model
 from relight_core.chunking import crossfade_weights, pad_to_valid, plan_chunks, stitch
 from relight_core.costs import CostModel
-from relight_core.diffusion import SAMPLERS, ConditionedDenoiser, EDMPrecond, guided, network_calls, sampling_sigmas
+from relight_core.diffusion import (SAMPLERS, ConditionedDenoiser, EDMPrecond, calls_per_step, guided, network_calls,
+                                    sampling_sigmas)
 from relight_core.dit import LIGHTING_KEYS, NUM_CLIPS, network, pack_lighting
 from relight_core.errors import InputError
 from relight_core.precision import autocast, precision_name, resolve_precision
@@ -112,7 +113,7 @@ class Relighter(CostModel):
         members = self.members(request.ensemble)
         sigmas = sampling_sigmas(steps, self.spec.final_denoise).to(self.device)
         guidance_calls = 1 if request.guidance == 0 else 2    # the unconditional call beside each with guidance
-        per_step = guidance_calls * (2 if sampler_name == "heun" else 1)
+        per_step = guidance_calls * calls_per_step(sampler_name)
         evals_per_chunk = guidance_calls * network_calls(steps, self.spec.final_denoise, sampler_name)
 
         relit_out = np.zeros_like(frames)
