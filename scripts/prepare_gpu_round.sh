@@ -7,9 +7,12 @@
 # finished scenes; a pack or the pieces are made again only when missing), so run it again after a stop.
 #   bash scripts/prepare_gpu_round.sh      # → ~/.cache/unirelight-studio/gpu-calls/{c1..cN, calls.md}
 #   SCENES=3000 PIECES="58 40" bash scripts/prepare_gpu_round.sh
+#   LOSSLESS=1 bash scripts/prepare_gpu_round.sh   # the same scenes packed as PNG → gpu-calls-lossless/ (beside the JPEG set)
 # Settings (environment): UNIRELIGHT_CACHE, PYTHON, SEED (7), SCENES (7022), WORKERS (nproc), VAL (128 scenes kept
 # out as val.npz), TEST_SCENES (200), PIECES (each piece's largest size, MB), REFIT_SEED (8), REFIT_SCENES (900,
-# the last 128 of them the refiners' validation), CALL_MB (58: what a call carries besides the working tree).
+# the last REFIT_VAL (128) of them the refiners' validation), CALL_MB (58: what a call carries besides the working tree),
+# LOSSLESS (1: every pack PNG, the rendered pixels exactly, ~2.5× the bytes of JPEG 92, so ~2.5× the calls for the
+# same scenes; the packs, pieces and calls get a "-lossless" suffix, so both sets can be made from one rendering).
 # Then follow gpu-calls/calls.md: one call at a time, the last runs scripts/gpu_whole_round.sh (the DiT, then
 # both refiners fitted again to it).
 set -euo pipefail
@@ -20,16 +23,19 @@ seed=${SEED:-7}
 scenes=${SCENES:-7022}
 workers=${WORKERS:-$(nproc)}
 data="$cache/data$seed"
-pack="$cache/train-s$seed-all.npz"
-pieces_dir="$cache/gpu-pieces-s$seed"
 val=${VAL:-128}
 test_scenes=${TEST_SCENES:-200}
 read -r -a pieces <<< "${PIECES:-58 58 58 40}"
 refit_seed=${REFIT_SEED:-8}
 refit_scenes=${REFIT_SCENES:-900}
+refit_val=${REFIT_VAL:-128}
 refit_data="$cache/data$refit_seed"
-refit_dir="$cache/refit-s$refit_seed"
-calls_dir="$cache/gpu-calls"
+suffix="" pack_args=()
+if [[ "${LOSSLESS:-0}" == 1 ]]; then suffix="-lossless" pack_args=(--lossless); fi
+pack="$cache/train-s$seed-all$suffix.npz"
+pieces_dir="$cache/gpu-pieces-s$seed$suffix"
+refit_dir="$cache/refit-s$refit_seed$suffix"
+calls_dir="$cache/gpu-calls$suffix"
 
 echo "$(date +%H:%M:%S) test split ($test_scenes scenes) → $cache/data"
 "$python" -m relight_core render-data --out "$cache/data" --split test --scenes "$test_scenes" --frames 1 --size 128 \
@@ -39,7 +45,7 @@ echo "$(date +%H:%M:%S) $scenes seed-$seed training scenes → $data"
   --spp 32 --seed "$seed" --workers "$workers"
 if [[ ! -f "$pack" ]]; then
   echo "$(date +%H:%M:%S) packing → $pack"
-  "$python" -m relight_core.training.pack --data "$data" --split train --out "$pack.partial.npz"
+  "$python" -m relight_core.training.pack --data "$data" --split train --out "$pack.partial.npz" "${pack_args[@]}"
   mv "$pack.partial.npz" "$pack"
 fi
 if [[ ! -f "$pieces_dir/val.npz" ]]; then
@@ -47,7 +53,8 @@ if [[ ! -f "$pieces_dir/val.npz" ]]; then
   rm -rf "$pieces_dir.partial"
   "$python" -m relight_core.training.pieces --pack "$pack" --val "$val" --pieces "${pieces[@]}" \
     --out "$pieces_dir.partial"
-  "$python" -m relight_core.training.pack --data "$cache/data" --split test --out "$pieces_dir.partial/test.npz"
+  "$python" -m relight_core.training.pack --data "$cache/data" --split test --out "$pieces_dir.partial/test.npz" \
+    "${pack_args[@]}"
   mv "$pieces_dir.partial" "$pieces_dir"
 fi
 echo "$(date +%H:%M:%S) $refit_scenes seed-$refit_seed scenes for the refiners (no model has seen them) → $refit_data"
@@ -55,8 +62,9 @@ echo "$(date +%H:%M:%S) $refit_scenes seed-$refit_seed scenes for the refiners (
   --spp 32 --seed "$refit_seed" --workers "$workers"
 if [[ ! -f "$refit_dir/val.npz" ]]; then
   rm -rf "$refit_dir.partial"
-  "$python" -m relight_core.training.pack --data "$refit_data" --split train --out "$refit_dir.partial/all.npz"
-  "$python" -m relight_core.training.pieces --pack "$refit_dir.partial/all.npz" --val 128 --pieces 58 \
+  "$python" -m relight_core.training.pack --data "$refit_data" --split train --out "$refit_dir.partial/all.npz" \
+    "${pack_args[@]}"
+  "$python" -m relight_core.training.pieces --pack "$refit_dir.partial/all.npz" --val "$refit_val" --pieces 58 \
     --out "$refit_dir.partial/cut"
   mkdir -p "$refit_dir"
   mv "$refit_dir.partial/cut/p1.npz" "$refit_dir/refit.npz"
