@@ -11,6 +11,8 @@
 # training.assemble --like LIKE --dit SHARDS --refiner ... --relit-refiner ... makes the model folder, then
 # calibrate (--write, --strengths) and evaluate as usual. DEVICE=cpu runs the same on a CPU; REFINE_LR (3e-4),
 # REFINE_BATCH (16), SAME (80 items relit to their own light), THREADS (4) and VAL_EVERY (0.5 min) tune the runs.
+# HAND_BACK=1 trains nothing: it hands back what runs stopped early (by a time limit) left in $RUNS_DIR, the best
+# EMA each kept so far (gpu_whole_round.sh does this when the refit ran out of time).
 set -uo pipefail
 cd "$(dirname "$0")/.."
 export PYTHONUNBUFFERED=1 PYTHONPATH=$PWD${PYTHONPATH:+:$PYTHONPATH}   # keeps a caller's (carried wheels in /tmp/site)
@@ -25,7 +27,10 @@ mkdir -p "$out" "$runs"
 # shellcheck disable=SC2086  # $PACKS is a glob, expanded here
 packs=$(ls ${PACKS:?PACKS: packs of scenes the new DiT never trained on})
 echo "packs: $packs"
+status=0
+if [[ ${HAND_BACK:-0} != 1 ]]; then
 "$python" -m relight_core.training.assemble --like "$like" --dit "$dit" --out "$runs/cand" || exit 1
+pids=()
 for slot in refiner relit_refiner; do
   extra=()
   [[ $slot == relit_refiner ]] && extra=(--same-scenes "${SAME:-80}")   # ~5 % of the items relit to their own light
@@ -34,9 +39,16 @@ for slot in refiner relit_refiner; do
     --slot "$slot" "${extra[@]}" --permute-colours --lr "${REFINE_LR:-3e-4}" --batch "${REFINE_BATCH:-16}" \
     --device "${DEVICE:-cuda}" --threads "${THREADS:-4}" --minutes "$minutes" \
     --val-every-minutes "${VAL_EVERY:-0.5}" --out "$runs/$slot" > "$out/log-$slot.txt" 2>&1 &
+  pids+=("$!")
 done
-wait
-status=0
+# a run that died after saving its start would look like a refit that changed nothing: its exit status says
+for i in 0 1; do
+  slot=$([[ $i == 0 ]] && echo refiner || echo relit_refiner)
+  wait "${pids[$i]}" || { echo "the $slot run failed (exit status $?): see $out/log-$slot.txt" | tee -a "$out/failures.txt"
+                          status=1; }
+done
+fi
+[[ -d $runs/cand ]] || { echo "no refit to hand back: $runs/cand is missing"; exit 1; }
 parts=()
 for slot in refiner relit_refiner; do
   if [[ -f $runs/$slot/refiner.safetensors ]]; then

@@ -21,7 +21,7 @@ packs=$(ls ${PACKS:-/tmp/packs/*.npz})
 echo "packs: $packs"
 "$python" -c "import torch; print('torch', torch.__version__, 'cuda', torch.cuda.is_available())"
 seed=70
-models=()
+models=() pids=()
 for lr in ${LRS:-2e-4 1e-4}; do
   # shellcheck disable=SC2086
   "$python" -m relight_core.training.fast --pack $packs ${TEST:+--test-pack "$TEST"} --val-pack "$VAL" \
@@ -29,9 +29,15 @@ for lr in ${LRS:-2e-4 1e-4}; do
     --ema-decay 0.999 --init "$init" --residual --p-sigma-max 0.9 --albedo-weight 0.5 --mix-lights 0.5 \
     --eval-steps 1 --eval-items 32 --val-items 128 --val-every-minutes 0.5 --export-every-minutes 1000 \
     --checkpoint-every-minutes 1000 --log-every 50 ${COMPILE:+--compile} --out "$runs/lr-$lr" > "$out/log-lr-$lr.txt" 2>&1 &
+  pids+=("$!")
   models+=("$runs/lr-$lr/model")
   seed=$((seed + 1))
 done
-wait
+# each run's exit status, so that a run that died says so (failures.txt) rather than only leaving no model
+rm -f "$out/failures.txt"
+for i in "${!pids[@]}"; do
+  wait "${pids[$i]}" || echo "the run ${models[$i]%/model} failed (exit status $?): see $out/log-$(basename "${models[$i]%/model}").txt" \
+    | tee -a "$out/failures.txt"
+done
 "$python" -m relight_core.training.pick "${models[@]}" --val "$VAL" --init "$init" --out "$out" \
   --device "${DEVICE:-cuda}"

@@ -25,14 +25,17 @@ def test_a_gpu_round_runs_its_learning_rates_and_hands_back_the_pick(tmp_path):
     out = tmp_path / "out"
     env = dict(os.environ, PACKS=str(tmp_path / "pieces" / "p*.npz"), VAL=str(tmp_path / "pieces" / "val.npz"),
                TEST=str(tmp_path / "pieces" / "val.npz"), INIT=str(REPO_ROOT / "models" / "default"),
-               OUT=str(out), RUNS_DIR=str(tmp_path / "runs"), DEVICE="cpu", BATCH="2", LRS="1e-4 0",
+               OUT=str(out), RUNS_DIR=str(tmp_path / "runs"), DEVICE="cpu", BATCH="2", LRS="1e-4 0 fast",
                PYTHON=sys.executable, OMP_NUM_THREADS="1")
     done = subprocess.run(["bash", str(REPO_ROOT / "scripts" / "gpu_round.sh"), "0.02"], env=env,
                           capture_output=True, text=True, timeout=600)
     assert done.returncode == 0, done.stdout[-2000:] + done.stderr[-2000:]
     assert {p.name for p in out.iterdir()} >= {"config.json", "pick.json", "dit-shard-0.safetensors",
-                                               "log-lr-1e-4.txt", "log-lr-0.txt"}
-    assert len(list(out.iterdir())) <= 8                                      # a device hands back ≤ 8 files
+                                               "log-lr-1e-4.txt", "log-lr-0.txt", "failures.txt"}
+    # a run that dies (here a learning rate that is not a number) is named as failed, and the others are picked from
+    failed = (out / "failures.txt").read_text().splitlines()
+    assert len(failed) == 1 and "lr-fast failed (exit status 2)" in failed[0] and "log-lr-fast.txt" in failed[0]
+    assert len([p for p in out.iterdir() if "fast" not in p.name and p.name != "failures.txt"]) <= 8   # ≤ 8 files
     for lr in ("1e-4", "0"):
         records = [json.loads(line) for line in (out / f"log-lr-{lr}.txt").read_text().splitlines()
                    if line.startswith('{"event": "val"')]
@@ -74,6 +77,8 @@ def test_a_whole_round_is_planned_into_calls_carried_and_hands_back_a_model_with
          "aux/val.npz", "aux/test.npz", "refit/refit.npz", "aux/refit-val.npz"])   # every file, once
     plan = (tmp_path / "calls" / "calls.md").read_text()
     assert plan.count("carry") == len(planned) and plan.rstrip().endswith("0.02 0.02`")
+    listed = (tmp_path / "calls" / f"c{len(planned)}" / calls.INVENTORY).read_text().split("\n")[:-1]
+    assert sorted(line.split(" ", 1)[1] for line in listed) == sorted(f for c in planned for f in c["files"])
     with pytest.raises(ValueError, match="more than one call's"):
         calls.plan_calls(files, tmp_path / "calls2", 20.0)
     with pytest.raises(SystemExit):                                          # the CLI: one sentence, no traceback
@@ -93,15 +98,35 @@ def test_a_whole_round_is_planned_into_calls_carried_and_hands_back_a_model_with
     env = dict(os.environ, GPU_DIR=str(machine), OUT=str(out), DEVICE="cpu", BATCH="2", LRS="1e-4",
                REFINE_LR="0", REFINE_BATCH="2", SAME="1", THREADS="1", VAL_EVERY="0.01", PYTHON=sys.executable,
                OMP_NUM_THREADS="1")
-    done = subprocess.run(["bash", str(REPO_ROOT / "scripts" / "gpu_whole_round.sh"), "0.02", "0.02"], env=env,
-                          capture_output=True, text=True, timeout=900)
+    whole_round = ["bash", str(REPO_ROOT / "scripts" / "gpu_whole_round.sh"), "0.02", "0.02"]
+    # a machine that lost a file of an earlier call (given back between calls): the round stops before running
+    (machine / "packs" / "p2.npz").rename(tmp_path / "p2.npz")
+    stopped = subprocess.run(whole_round, env=dict(env, OUT=str(tmp_path / "out-missing")), capture_output=True,
+                             text=True, timeout=60)
+    assert stopped.returncode == 3 and "lacks 1 of the round's files (packs/p2.npz" in stopped.stdout
+    assert (tmp_path / "out-missing" / "missing.txt").read_text() == "packs/p2.npz\n"
+    assert not (machine / "work").exists()                                      # nothing ran
+    (tmp_path / "p2.npz").rename(machine / "packs" / "p2.npz")
+    done = subprocess.run(whole_round, env=env, capture_output=True, text=True, timeout=900)
     assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]
+    assert f"all {len(listed)} files of the round are here" in done.stdout
     names = {p.name for p in out.iterdir()}
     assert names >= {"config.json", "dit-shard-0.safetensors", "refiner.safetensors", "relit_refiner.safetensors",
                      "round.tar.gz"} and len(names) <= 8
     assert all(p.stat().st_size <= 16 * 2 ** 20 for p in out.iterdir())        # ≤ 16 MiB a file
     listed = subprocess.run(["tar", "tzf", str(out / "round.tar.gz")], capture_output=True, text=True).stdout.split()
     assert {"round/pick.json", "refit/best-refiner.json", "refit/best-relit_refiner.json"} <= set(listed)
+    # a refit stopped by the time limit hands back what its runs kept (HAND_BACK=1: no training, the best EMAs so far)
+    kept = tmp_path / "kept"
+    salvage = subprocess.run(["bash", str(REPO_ROOT / "scripts" / "gpu_refine.sh"), "0"], capture_output=True,
+                             text=True, timeout=300,
+                             env=dict(env, HAND_BACK="1", OUT=str(kept), RUNS_DIR=str(machine / "work" / "refit-runs"),
+                                      DIT=str(machine / "work" / "round"), LIKE=str(machine / "aux" / "model"),
+                                      PACKS=str(machine / "refit" / "*.npz"), VAL=str(machine / "aux" / "refit-val.npz")))
+    assert salvage.returncode == 0, salvage.stdout[-2000:] + salvage.stderr[-2000:]
+    assert {p.name for p in kept.iterdir()} == {"refiner.safetensors", "relit_refiner.safetensors",
+                                                "best-refiner.json", "best-relit_refiner.json"}
+    assert not any(p.name.endswith(".partial") for p in (machine / "work" / "refit-runs").rglob("*"))
     folder = assemble(model, tmp_path / "new", dit=out, refiners={"refiner": out / "refiner.safetensors",
                                                                   "relit_refiner": out / "relit_refiner.safetensors"})
     relighter = Relighter.load(str(folder))

@@ -25,6 +25,7 @@ import shutil
 from pathlib import Path
 
 MB = 1e6
+INVENTORY = "round-files.txt"      # in the last call's folder: "SIZE DEST" a line, every file of the round
 
 
 def _items(specs: list[str]) -> list[tuple[str, Path]]:
@@ -77,8 +78,14 @@ def plan_calls(specs: list[str], out: Path, limit_mb: float, run: str = "", mach
              "take the large tracked files out of the working tree, which travels with every call: "
              "`git ls-files -z models '*.png' | xargs -0 rm` (after the last call: `git checkout -- .`). "
              "Make each call as soon as the one before returns: the machine stays warm 30 s.", ""]
+    # the last call also carries the list of every file of the round with its size, so that the round can check that
+    # the machine still holds what the calls before brought (a machine given back between calls loses /tmp)
+    inventory = "".join(f"{path.stat().st_size} {dest}\n" for dest, path in sorted(items, key=lambda item: item[0]))
     for number, call in enumerate(calls, 1):
         folder = out / f"c{number}"
+        if number == len(calls):
+            folder.mkdir(parents=True, exist_ok=True)
+            (folder / INVENTORY).write_text(inventory)
         for dest, path in call["files"]:
             target = folder / dest
             target.parent.mkdir(parents=True, exist_ok=True)

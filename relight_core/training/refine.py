@@ -43,6 +43,7 @@ from __future__ import annotations
 import argparse
 import copy
 import json
+import os
 import shutil
 import time
 from pathlib import Path
@@ -384,12 +385,17 @@ def train(args: argparse.Namespace, log=print) -> dict:
     records = open(out / "log.jsonl", "a")
 
     def save_best(score: dict) -> None:
-        save_file({k: v.detach().cpu().contiguous() for k, v in ema.state_dict().items()}, out / REFINER_FILE)
+        # each file written aside and renamed: a run stopped at any moment (a GPU call's time limit) leaves the best
+        # EMA so far whole, never a cut-off file
+        partial = out / (REFINER_FILE + ".partial")
+        save_file({k: v.detach().cpu().contiguous() for k, v in ema.state_dict().items()}, partial)
+        os.replace(partial, out / REFINER_FILE)
         kept = [*config.clips, *(["same"] if "same" in score and "relit" in config.clips else [])]
         best = {"step": state["step"], "val": {k: score[k] for k in kept}, "start": state["start"],
                 "refiner": config.to_dict(),
                 "model": str(args.model), "train_items": len(items), "val_items": len(val_items)}
-        (out / "best.json").write_text(json.dumps(best, indent=1))
+        (out / "best.json.partial").write_text(json.dumps(best, indent=1))
+        os.replace(out / "best.json.partial", out / "best.json")
         state["best"] = score
 
     if state["best"] is None and "init" in state["start"]:
