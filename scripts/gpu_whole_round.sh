@@ -6,6 +6,7 @@
 #   packs/*.npz             the DiT's training scenes          aux/val.npz    held-out scenes for the DiT's pick
 #   aux/test.npz            the test split (scored, not used)  aux/model/     the shipped model folder (the start)
 #   refit/*.npz             scenes the DiT never trains on     aux/refit-val.npz  held-out scenes for the refiners
+#                                                              (absent: aux/val.npz serves them too)
 # Hands back in $OUT (≤ 8 files, ≤ 16 MiB each): the picked DiT as dit-shard-*.safetensors + config.json, the two
 # refiners in bf16 (refiner.safetensors, relit_refiner.safetensors) and round.tar.gz (logs, pick.json, best-*.json).
 #   OUT=$OUT COMPILE=1 bash scripts/gpu_whole_round.sh 5.5 2
@@ -57,11 +58,13 @@ status=1
 if compgen -G "$work/round/dit-shard-*.safetensors" > /dev/null; then
   cp "$work"/round/dit-shard-*.safetensors "$work/round/config.json" "$result/"
   left=$(( limit - ($(date +%s) - started) - 20 ))       # seconds the refit may take, hand-back included
+  refit_val=$gpu/aux/refit-val.npz
+  [[ -f $refit_val ]] || refit_val=$gpu/aux/val.npz
   # the minutes asked for, or what the time left allows if less; none if that is under a quarter of a minute
   refit_minutes=$(awk -v asked="$refit_minutes" -v left="$left" -v overhead="${REFIT_OVERHEAD_S:-150}" \
     'BEGIN { m = (left - overhead) / 60; if (asked <= m) m = asked; else if (m < 0.25) m = 0; printf "%.3g", m }')
   refit=(env OUT="$work/refit" RUNS_DIR="$work/refit-runs" DIT="$work/round" LIKE="$gpu/aux/model"
-         PACKS="$gpu/refit/*.npz" VAL="$gpu/aux/refit-val.npz" bash scripts/gpu_refine.sh)
+         PACKS="$gpu/refit/*.npz" VAL="$refit_val" bash scripts/gpu_refine.sh)
   mkdir -p "$work/refit"
   if awk -v m="$refit_minutes" 'BEGIN { exit !(m > 0) }'; then
     echo "the refit: $refit_minutes minutes of training, $left s in all"

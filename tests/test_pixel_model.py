@@ -109,6 +109,21 @@ def test_lossless_pack_holds_the_rendered_pixels(tmp_path):
     assert torch.equal(png["mask"], jpeg["mask"]) and torch.equal(png["env"], jpeg["env"])
 
 
+def test_a_prefixed_pack_keeps_alike_named_scenes_of_another_split_apart(tmp_path):
+    """training.refine leaves out of training every scene its validation pack names; a development pack of the
+    test split (scene_000000… like any training pack) packed with a prefix takes none of them away."""
+    from relight_core.training.refine import unseen_items
+
+    root = write_pack_dataset(tmp_path / "data", scenes=3)
+    write_pack(root, "train", tmp_path / "train.npz", lighting_size=8)
+    write_pack(root, "train", tmp_path / "plain.npz", lighting_size=8)
+    write_pack(root, "train", tmp_path / "dev.npz", lighting_size=8, names_prefix="test-s2/")
+    names = load_pack(tmp_path / "train.npz")["names"]
+    assert load_pack(tmp_path / "dev.npz")["names"] == [f"test-s2/{n}" for n in names]
+    assert unseen_items(names, [tmp_path / "plain.npz"], None) == []            # alike names: every scene left out
+    assert len(unseen_items(names, [tmp_path / "dev.npz"], None)) == len(unseen_items(names, [], None)) > 0
+
+
 def test_several_packs_train_as_one_and_must_match(tmp_path, capsys):
     write_pack(write_pack_dataset(tmp_path / "a", scenes=3), "train", tmp_path / "a.npz", lighting_size=8)
     write_pack(write_pack_dataset(tmp_path / "b", scenes=2, seed=1), "train", tmp_path / "b.npz", lighting_size=8)

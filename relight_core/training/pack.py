@@ -51,8 +51,10 @@ def _decode_frame(data: np.ndarray) -> np.ndarray:
 
 
 def write_pack(data: Path, split: str, out: Path, lighting_size: int = 32, limit: int | None = None,
-               frame: int = 0, lossless: bool = False) -> int:
-    """Pack frame `frame` of every finished synthetic scene of `data/split` (as PNG with `lossless`); returns
+               frame: int = 0, lossless: bool = False, names_prefix: str = "") -> int:
+    """Pack frame `frame` of every finished synthetic scene of `data/split` (as PNG with `lossless`), each named
+    `names_prefix` + its folder's name (a prefix keeps scenes of another split or seed apart from a training pack's
+    alike-named ones: `training.refine` leaves out of training every scene its validation pack names); returns
     the scene count."""
     from relight_core import lighting
     from relight_core.data.dataset import write_manifest
@@ -72,7 +74,7 @@ def write_pack(data: Path, split: str, out: Path, lighting_size: int = 32, limit
         masks.append(np.packbits(mask.reshape(mask.shape[0], mask.shape[1], -1)[..., 0].ravel() > 0.5))
         pans = torch.stack([torch.from_numpy(read_exr(root / f"env{light}" / f"{name}.exr")) for light in (0, 1)])
         envs.append(lighting.downsample_panorama(pans, lighting_size).numpy().astype(np.float16))
-        names.append(sample["path"])
+        names.append(names_prefix + sample["path"])
     height, width = read_image(split_dir / samples[0]["path"] / "rgb0" / f"{frame:04d}.png").shape[:2]
     out.parent.mkdir(parents=True, exist_ok=True)
     save_pack(out, blobs, np.stack(masks), np.stack(envs), (height, width), lighting_size, names)
@@ -137,8 +139,11 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--lighting-size", type=int, default=32)
     parser.add_argument("--limit", type=int, default=None)
     parser.add_argument("--lossless", action="store_true", help="PNG instead of JPEG 92: the rendered pixels exactly")
+    parser.add_argument("--names-prefix", default="",
+                        help="put before every scene's name (e.g. test-s2/ for a development pack of the test split)")
     args = parser.parse_args(argv)
-    count = write_pack(args.data, args.split, args.out, args.lighting_size, args.limit, lossless=args.lossless)
+    count = write_pack(args.data, args.split, args.out, args.lighting_size, args.limit, lossless=args.lossless,
+                       names_prefix=args.names_prefix)
     print(f"packed {count} scenes into {args.out} ({args.out.stat().st_size / 1e6:.1f} MB)")
 
 
