@@ -25,23 +25,26 @@ def test_a_gpu_round_runs_its_learning_rates_and_hands_back_the_pick(tmp_path):
     out = tmp_path / "out"
     env = dict(os.environ, PACKS=str(tmp_path / "pieces" / "p*.npz"), VAL=str(tmp_path / "pieces" / "val.npz"),
                TEST=str(tmp_path / "pieces" / "val.npz"), INIT=str(REPO_ROOT / "models" / "default"),
-               OUT=str(out), RUNS_DIR=str(tmp_path / "runs"), DEVICE="cpu", BATCH="2", LRS="1e-4 0 fast",
+               OUT=str(out), RUNS_DIR=str(tmp_path / "runs"), DEVICE="cpu", BATCH="2", LRS="1e-4 0:permute fast",
                PYTHON=sys.executable, OMP_NUM_THREADS="1")
     done = subprocess.run(["bash", str(REPO_ROOT / "scripts" / "gpu_round.sh"), "0.02"], env=env,
                           capture_output=True, text=True, timeout=600)
     assert done.returncode == 0, done.stdout[-2000:] + done.stderr[-2000:]
     assert {p.name for p in out.iterdir()} >= {"config.json", "pick.json", "dit-shard-0.safetensors",
-                                               "log-lr-1e-4.txt", "log-lr-0.txt", "failures.txt"}
+                                               "log-lr-1e-4.txt", "log-lr-0-permute.txt", "failures.txt"}
     # a run that dies (here a learning rate that is not a number) is named as failed, and the others are picked from
     failed = (out / "failures.txt").read_text().splitlines()
     assert len(failed) == 1 and "lr-fast failed (exit status 2)" in failed[0] and "log-lr-fast.txt" in failed[0]
     assert len([p for p in out.iterdir() if "fast" not in p.name and p.name != "failures.txt"]) <= 8   # ≤ 8 files
-    for lr in ("1e-4", "0"):
+    for lr in ("1e-4", "0-permute"):
         records = [json.loads(line) for line in (out / f"log-lr-{lr}.txt").read_text().splitlines()
                    if line.startswith('{"event": "val"')]
         assert records[0]["step"] == 0 and len(records) >= 2                  # scored at step 0 and the end
+    notes = {lr: json.loads((tmp_path / "runs" / f"lr-{lr}" / "model" / "config.json").read_text())["notes"]
+             for lr in ("1e-4", "0-permute")}
+    assert notes["0-permute"]["permute_colours"] is True and "permute_colours" not in notes["1e-4"]
     picked = json.loads((out / "pick.json").read_text())
-    runs = [str(tmp_path / "runs" / f"lr-{lr}" / "model") for lr in ("1e-4", "0")]
+    runs = [str(tmp_path / "runs" / f"lr-{lr}" / "model") for lr in ("1e-4", "0-permute")]
     assert set(picked["scores"]) == {*runs, "mean", "mean with init", "init"} and picked["best"] in picked["scores"]
     spec, dit, _ = load_model(merge_shards(out, out / "config.json", tmp_path / "picked"))
     assert spec.residual and spec.notes["picked"]["from"] == picked["best"]

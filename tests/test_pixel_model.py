@@ -173,6 +173,27 @@ def test_batches_flip_image_and_probe_together(tmp_path):
     assert torch.equal(dir_plain, dir_flipped)
 
 
+def test_batches_reorder_the_colours_of_frames_and_probe_alike(tmp_path):
+    """An item with its colours reordered is the item of a pack whose frames and probes were reordered by hand."""
+    write_pack(write_pack_dataset(tmp_path / "data"), "train", tmp_path / "p.npz", lighting_size=8)
+    pack = load_pack(tmp_path / "p.npz")
+    tok = PixelTokenizer(8)
+    idx, target, flip = torch.tensor([0, 2, 1]), torch.tensor([1, 0, 1]), torch.tensor([False, True, False])
+    colours = torch.tensor([3, 0, 5])                                  # (1, 2, 0), unchanged, (2, 1, 0)
+    got = make_batch(pack, tok, idx, target, flip, colours=colours)
+    plain = make_batch(pack, tok, idx, target, flip)
+    for i, order in enumerate(([1, 2, 0], [0, 1, 2], [2, 1, 0])):
+        by_hand = {"rgb": pack["rgb"][idx[i]:idx[i] + 1][:, :, order], "albedo": pack["albedo"][idx[i]:idx[i] + 1][:, order],
+                   "env": pack["env"][idx[i]:idx[i] + 1][..., order], "names": [pack["names"][idx[i]]],
+                   "lighting_size": pack["lighting_size"]}
+        want = make_batch(by_hand, tok, torch.tensor([0]), target[i:i + 1], flip[i:i + 1])
+        for key in ("input", "relit", "albedo", "lighting"):
+            assert torch.allclose(got[key][i:i + 1], want[key], atol=1e-6), (i, key)
+    assert torch.equal(got["relit"][1], plain["relit"][1])             # order 0 leaves the item as it was
+    assert not torch.allclose(got["relit"][0], plain["relit"][0])      # another one does not
+    assert not torch.allclose(got["lighting"][2], plain["lighting"][2])
+
+
 def test_batches_relight_between_mixtures_of_the_two_probes_in_linear_light(tmp_path):
     write_pack(write_pack_dataset(tmp_path / "data"), "train", tmp_path / "p.npz", lighting_size=8)
     pack = load_pack(tmp_path / "p.npz")

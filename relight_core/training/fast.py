@@ -91,6 +91,7 @@ class FastConfig:
     mix_lights: float = 0.0              # share of items relit between mixtures of their two probes (make_batch)
     crop: float = 0.0                    # share of items cut as a zoomed crop of the full-size pack (crop_items)
     crop_min: float = 0.5                # the smallest crop's side, a fraction of the frame's
+    permute_colours: bool = False        # each item's RGB channels in one of the six orders, probe alike (make_batch)
     val_pack: Path | None = None         # held-out scenes: the EMA is scored on them and the best one exported
     val_every_minutes: float = 1.0       # how often (and at step 0 and the end)
     val_items: int = 128
@@ -168,12 +169,20 @@ def crop_items(full: dict, small: dict, indices: torch.Tensor, crops: torch.Tens
     return {"rgb": rgb, "albedo": albedo, "env": small["env"][indices]}
 
 
+COLOUR_ORDERS = torch.tensor([[0, 1, 2], [0, 2, 1], [1, 0, 2], [1, 2, 0], [2, 0, 1], [2, 1, 0]])
+
+
 def make_batch(pack: dict, tokenizer: PixelTokenizer, indices: torch.Tensor, target: torch.Tensor,
-               flip: torch.Tensor, mix: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+               flip: torch.Tensor, mix: torch.Tensor | None = None,
+               colours: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
     """Latents of items: input (the other light), relit (light `target`), albedo, lighting [B,579,1,h,w].
 
     `flip` mirrors image and probe left↔right (u → 1−u in the camera panorama: the mirrored scene
     under the mirrored light), env_dir staying what it is for every pixel.
+
+    `colours` [B] (optional, 0–5) reorders each item's RGB channels by `COLOUR_ORDERS[colours]` in its frames
+    and its probe alike: the data engine renders each channel on its own (the principled BSDF's tints are off),
+    so that is the scene with its colours and its light's reordered, as a render would show it.
 
     `mix` [B,2] (optional) relights with mixtures of the scene's two probes: light transport is linear
     in the light, so the scene under w·probe[t] + (1−w)·probe[1−t] is w·image[t] + (1−w)·image[1−t]
@@ -199,6 +208,11 @@ def make_batch(pack: dict, tokenizer: PixelTokenizer, indices: torch.Tensor, tar
     f = flip.view(-1, 1, 1, 1)
     relit, source, albedo = (torch.where(f, x.flip(-1), x) for x in (relit, source, albedo))
     env = torch.where(f, env.flip(2), env)
+    if colours is not None:
+        order = COLOUR_ORDERS.to(colours.device)[colours]                             # (B, 3)
+        relit, source, albedo = (torch.gather(x, 1, order[:, :, None, None].expand_as(x))
+                                 for x in (relit, source, albedo))
+        env = torch.gather(env, -1, order[:, None, None, :].expand_as(env))
     height, width = relit.shape[-2:]
     encoded = lighting.encode_lighting(lighting.upsample_panorama(env, height, width))
     light = [tokenizer.encode(_video(encoded[k].to(relit.device).permute(0, 3, 1, 2)))
@@ -417,6 +431,8 @@ def train(config: FastConfig) -> dict:
         notes["mix_lights"] = config.mix_lights
     if config.crop > 0:
         notes["crop"] = {"share": config.crop, "smallest": config.crop_min}
+    if config.permute_colours:
+        notes["permute_colours"] = True
     def micro_step() -> torch.Tensor:
         """Draw `batch` items, backpropagate their loss / accumulate; returns the loss (detached)."""
         indices = torch.randint(0, n, (config.batch,), generator=generator, device=device)
@@ -425,12 +441,16 @@ def train(config: FastConfig) -> dict:
         mix = None
         if config.mix_lights > 0:  # no extra draws without it: runs before it resume exactly
             mix = light_mix(config.batch, config.mix_lights, generator, device)
+        colours = None
+        if config.permute_colours:  # likewise
+            colours = torch.randint(0, len(COLOUR_ORDERS), (config.batch,), generator=generator, device=device)
         if config.crop > 0:  # likewise
             items = crop_items(full, pack, indices, crop_draws(config.batch, config.crop, config.crop_min,
                                                                 generator, device))
-            batch = make_batch(items, tokenizer, torch.arange(config.batch, device=device), target, flip, mix)
+            batch = make_batch(items, tokenizer, torch.arange(config.batch, device=device), target, flip, mix,
+                               colours)
         else:
-            batch = make_batch(pack, tokenizer, indices, target, flip, mix)
+            batch = make_batch(pack, tokenizer, indices, target, flip, mix, colours)
         example = make_example(batch["input"], batch["relit"], batch["albedo"], batch["lighting"],
                                config.recipe, generator)
         with torch.autocast(device.type, dtype=torch.bfloat16, enabled=autocast):
@@ -536,6 +556,8 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--crop-min", type=float, default=0.5,
                         help="the smallest crop's side, as a fraction of the frame's (--crop); never below "
                              "--train-size, a crop is not enlarged")
+    parser.add_argument("--permute-colours", action="store_true",
+                        help="each item's RGB channels in a random one of the six orders, its probe's alike")
     defaults = FastConfig(pack=Path(), out=Path())
     for name in ("minutes", "device", "batch", "accumulate", "lr", "warmup", "ema_decay", "width", "depth", "num_heads",
                  "seed", "log_every", "eval_items", "eval_steps", "export_every_minutes", "export_steps",
