@@ -96,3 +96,14 @@ def delta_e_2000(srgb_a, srgb_b) -> np.ndarray:
         block = slice(start, start + DELTA_E_BLOCK)
         out[block] = colour.difference.delta_E_CIE2000(lab(a[block]), lab(b[block]))
     return out.reshape(shape[:-1])
+
+
+def permute_colours(images: torch.Tensor, order: torch.Tensor, dim: int = 1) -> torch.Tensor:
+    """Every RGB triple of `images` along `dim` ([B,3k,H,W] by default; a panorama [B,h,w,3] with dim=-1) with its
+    channels reordered by `order` [B,3] (a permutation per item: new channel j is old channel order[j]). The data
+    engine renders each channel on its own, so an item's frames and probe reordered alike are the scene with its
+    paints' and its light's colours swapped, as a render would show it (training's colour permutations)."""
+    moved = images.movedim(dim, -1)
+    triples = moved.reshape(*moved.shape[:-1], moved.shape[-1] // 3, 3)
+    index = order.view(order.shape[0], *([1] * (triples.dim() - 2)), 3).expand_as(triples)
+    return triples.gather(-1, index).reshape(moved.shape).movedim(-1, dim)

@@ -42,10 +42,10 @@ for slot in refiner relit_refiner; do
   pids+=("$!")
 done
 # a run that died after saving its start would look like a refit that changed nothing: its exit status says
-for i in 0 1; do
-  slot=$([[ $i == 0 ]] && echo refiner || echo relit_refiner)
-  wait "${pids[$i]}" || { echo "the $slot run failed (exit status $?): see $out/log-$slot.txt" | tee -a "$out/failures.txt"
-                          status=1; }
+slots=(refiner relit_refiner)
+for i in "${!pids[@]}"; do
+  wait "${pids[$i]}" || { echo "the ${slots[$i]} run failed (exit status $?): see $out/log-${slots[$i]}.txt" \
+                            | tee -a "$out/failures.txt"; status=1; }
 done
 fi
 [[ -d $runs/cand ]] || { echo "no refit to hand back: $runs/cand is missing"; exit 1; }

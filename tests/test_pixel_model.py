@@ -179,7 +179,7 @@ def test_batches_reorder_the_colours_of_frames_and_probe_alike(tmp_path):
     pack = load_pack(tmp_path / "p.npz")
     tok = PixelTokenizer(8)
     idx, target, flip = torch.tensor([0, 2, 1]), torch.tensor([1, 0, 1]), torch.tensor([False, True, False])
-    colours = torch.tensor([3, 0, 5])                                  # (1, 2, 0), unchanged, (2, 1, 0)
+    colours = torch.tensor([[1, 2, 0], [0, 1, 2], [2, 1, 0]])           # the second unchanged
     got = make_batch(pack, tok, idx, target, flip, colours=colours)
     plain = make_batch(pack, tok, idx, target, flip)
     for i, order in enumerate(([1, 2, 0], [0, 1, 2], [2, 1, 0])):
@@ -189,7 +189,7 @@ def test_batches_reorder_the_colours_of_frames_and_probe_alike(tmp_path):
         want = make_batch(by_hand, tok, torch.tensor([0]), target[i:i + 1], flip[i:i + 1])
         for key in ("input", "relit", "albedo", "lighting"):
             assert torch.allclose(got[key][i:i + 1], want[key], atol=1e-6), (i, key)
-    assert torch.equal(got["relit"][1], plain["relit"][1])             # order 0 leaves the item as it was
+    assert torch.equal(got["relit"][1], plain["relit"][1])             # the identity order leaves the item as it was
     assert not torch.allclose(got["relit"][0], plain["relit"][0])      # another one does not
     assert not torch.allclose(got["lighting"][2], plain["lighting"][2])
 

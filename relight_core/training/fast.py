@@ -43,7 +43,7 @@ from safetensors.torch import load_file, save_file
 
 from relight_core import lighting
 from relight_core.checkpoint import CONFIG_FILE, DIT_FILE, ModelSpec
-from relight_core.colour import linear_to_srgb, srgb_to_linear
+from relight_core.colour import linear_to_srgb, permute_colours, srgb_to_linear
 from relight_core.diffusion import ConditionedDenoiser, EDMPrecond, sample_res2ab, sampling_sigmas
 from relight_core.dit import DiTConfig, JointDiT, pack_lighting
 from relight_core.devices import resolve_device
@@ -169,9 +169,6 @@ def crop_items(full: dict, small: dict, indices: torch.Tensor, crops: torch.Tens
     return {"rgb": rgb, "albedo": albedo, "env": small["env"][indices]}
 
 
-COLOUR_ORDERS = torch.tensor([[0, 1, 2], [0, 2, 1], [1, 0, 2], [1, 2, 0], [2, 0, 1], [2, 1, 0]])
-
-
 def make_batch(pack: dict, tokenizer: PixelTokenizer, indices: torch.Tensor, target: torch.Tensor,
                flip: torch.Tensor, mix: torch.Tensor | None = None,
                colours: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
@@ -180,9 +177,9 @@ def make_batch(pack: dict, tokenizer: PixelTokenizer, indices: torch.Tensor, tar
     `flip` mirrors image and probe left↔right (u → 1−u in the camera panorama: the mirrored scene
     under the mirrored light), env_dir staying what it is for every pixel.
 
-    `colours` [B] (optional, 0–5) reorders each item's RGB channels by `COLOUR_ORDERS[colours]` in its frames
-    and its probe alike: the data engine renders each channel on its own (the principled BSDF's tints are off),
-    so that is the scene with its colours and its light's reordered, as a render would show it.
+    `colours` [B,3] (optional, a permutation of 0–2 per item) reorders each item's RGB channels in its frames
+    and its probe alike (`colour.permute_colours`: the data engine renders each channel on its own, the principled
+    BSDF's tints being off, so that is the scene with its colours and its light's reordered).
 
     `mix` [B,2] (optional) relights with mixtures of the scene's two probes: light transport is linear
     in the light, so the scene under w·probe[t] + (1−w)·probe[1−t] is w·image[t] + (1−w)·image[1−t]
@@ -209,10 +206,8 @@ def make_batch(pack: dict, tokenizer: PixelTokenizer, indices: torch.Tensor, tar
     relit, source, albedo = (torch.where(f, x.flip(-1), x) for x in (relit, source, albedo))
     env = torch.where(f, env.flip(2), env)
     if colours is not None:
-        order = COLOUR_ORDERS.to(colours.device)[colours]                             # (B, 3)
-        relit, source, albedo = (torch.gather(x, 1, order[:, :, None, None].expand_as(x))
-                                 for x in (relit, source, albedo))
-        env = torch.gather(env, -1, order[:, None, None, :].expand_as(env))
+        relit, source, albedo = (permute_colours(x, colours) for x in (relit, source, albedo))
+        env = permute_colours(env, colours, dim=-1)
     height, width = relit.shape[-2:]
     encoded = lighting.encode_lighting(lighting.upsample_panorama(env, height, width))
     light = [tokenizer.encode(_video(encoded[k].to(relit.device).permute(0, 3, 1, 2)))
@@ -443,7 +438,7 @@ def train(config: FastConfig) -> dict:
             mix = light_mix(config.batch, config.mix_lights, generator, device)
         colours = None
         if config.permute_colours:  # likewise
-            colours = torch.randint(0, len(COLOUR_ORDERS), (config.batch,), generator=generator, device=device)
+            colours = torch.argsort(torch.rand(config.batch, 3, generator=generator, device=device), dim=1)
         if config.crop > 0:  # likewise
             items = crop_items(full, pack, indices, crop_draws(config.batch, config.crop, config.crop_min,
                                                                 generator, device))

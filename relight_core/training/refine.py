@@ -53,6 +53,7 @@ import torch
 from safetensors.torch import load_file, save_file
 
 from relight_core.checkpoint import CONFIG_FILE, DIT_FILE, load_model, resolve_model
+from relight_core.colour import permute_colours
 from relight_core.devices import resolve_device
 from relight_core.evaluation.metrics import protocol_psnr
 from relight_core.pipeline import copies_mean, copy_shifts
@@ -279,15 +280,6 @@ def model_inputs(data: dict, index, base: str, flip: torch.Tensor | None = None,
     return (*network_input(base, *(_signed(get(k)) for k in ("input", "relit", "albedo")), filtered), get)
 
 
-def permute_colours(images: torch.Tensor, order: torch.Tensor) -> torch.Tensor:
-    """Every RGB triple of `images` [B,3k,H,W] with its channels reordered by `order` [B,3] (a permutation
-    per item): a scene whose paints and lights have their colours swapped is as plausible a scene, and
-    the refiner, which never sees the light, learns not to lean on a colour it saw in training."""
-    b, c, h, w = images.shape
-    index = order.view(b, 1, 3, 1, 1).expand(b, c // 3, 3, h, w)
-    return images.view(b, c // 3, 3, h, w).gather(2, index).reshape(b, c, h, w)
-
-
 @torch.no_grad()
 def validate(refiner: Refiner, data: dict, autocast: bool) -> dict[str, float]:
     """The protocol's mean PSNR (relit, albedo) of the refined frames on `data`, as `Relighter` makes them
@@ -421,7 +413,7 @@ def train(args: argparse.Namespace, log=print) -> dict:
             order = torch.argsort(torch.rand(args.batch, 3, generator=generator), dim=1).to(device)
             x, r, a = (permute_colours(t, order) for t in (x, r, a))
             targets = {k: permute_colours(t, order) for k, t in targets.items()}
-            env = env.gather(3, order.view(-1, 1, 1, 3).expand_as(env))     # the light's colours alike
+            env = permute_colours(env, order, dim=-1)                           # the light's colours alike
         for group in optimizer.param_groups:
             group["lr"] = args.lr * group["scale"] * min(1.0, (state["step"] + 1) / args.warmup)
         with torch.autocast(device.type, dtype=torch.bfloat16, enabled=autocast):
