@@ -1,5 +1,6 @@
-"""The albedo refiner's strength past 1 on the development pack's scenes (test split, seed 2): per item,
-paired against strength 1 (the shipped value). The relit refiner stays as shipped.
+"""The albedo refiner's strength on the development pack's scenes (test split, seed 2): the mean albedo PSNR at
+each strength given, then each one paired per item against the first (give 1, the shipped value, first). The
+relit refiner stays as shipped.
 
     OMP_NUM_THREADS=1 PYTHONPATH=. python runs/dev-calibration/albedo_strength.py DATA ITEMS S1 S2 ...
 """
